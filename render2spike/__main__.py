@@ -1,0 +1,5 @@
+import sys
+
+from render2spike.cli import main
+
+sys.exit(main())

@@ -1,0 +1,36 @@
+"""render2spike sensor stage: spike-camera noise models, profiles, calibration and spike files.
+
+Units at this boundary: ``rate_e`` is expected photoelectrons per interval per
+pixel [e-/interval]; one interval is T_r = 50 us; thresholds are electrons.
+This package never imports Mitsuba.
+"""
+
+from .errors import (CalibrationError, DependencyError, FrameFileError, InputError, ProfileError,
+                     Render2SpikeError, SpikeFileError, UnknownMethodError)
+from .frames import FrameSequence, read_frame, read_frames, write_frame, write_frames, write_manifest
+from .models import MODELS, get_model
+from .profile import SensorProfile, bundled_profiles
+from .rates import RateSchedule, interval_rates
+from .simulate import SpikeSimulator, simulate
+from .spectral import SpectralCurve
+from .spikefile import read_dat, read_spikes, read_spikes_meta, write_dat, write_spikes
+from .units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
+
+
+def photoelectron_rate(phi, profile: SensorProfile):
+    """Phi [e-/(s m^2)] -> rate_e [e-/interval] for ``profile`` (pixel area x fill factor x T_r).
+
+    Thin wrapper of :func:`sensor.units.photoelectron_rate`, the one place the
+    conversion is defined.
+    """
+    from .units import photoelectron_rate as _per
+    return _per(phi, profile.pixel_pitch_m, profile.fill_factor, profile.interval_s)
+
+
+__all__ = [
+    "SensorProfile", "SpectralCurve", "SpikeSimulator", "simulate", "photoelectron_rate", "read_dat", "write_dat",
+    "read_spikes", "read_spikes_meta", "write_spikes", "read_frames", "read_frame", "write_frame", "write_frames",
+    "write_manifest", "FrameSequence", "RateSchedule", "interval_rates", "MODELS", "get_model", "bundled_profiles",
+    "INTERVAL_S", "CLOCK_HZ", "TIME_UNIT_S", "Render2SpikeError", "InputError", "ProfileError", "SpikeFileError",
+    "FrameFileError", "CalibrationError", "UnknownMethodError", "DependencyError",
+]

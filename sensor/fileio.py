@@ -1,0 +1,84 @@
+"""Small file helpers shared by every stage: atomic writes and provenance records."""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import os
+import platform
+import sys
+import tempfile
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_path(path, suffix: str | None = None):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
+
+    Nothing half-written is ever left at ``path``: if the body raises, the
+    temporary file is removed and ``path`` keeps its old content (or stays absent).
+    ``suffix`` defaults to ``path``'s own suffix, so libraries that infer the
+    format from the extension (OpenEXR, numpy, PIL) keep working.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.part-", suffix=path.suffix if suffix is None else suffix,
+                               dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path, text: str) -> Path:
+    """Write ``text`` to ``path`` atomically (temp file, then rename)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)
+
+
+def write_json_atomic(path, obj) -> Path:
+    """Write ``obj`` as indented JSON to ``path`` atomically."""
+    return write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(o):
+    import numpy as np
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"cannot serialise {type(o).__name__} to JSON")
+
+
+def package_version() -> str:
+    """The installed render2spike distribution version ("unknown" when run from a bare checkout)."""
+    from importlib import metadata
+    try:
+        return metadata.version("render2spike")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def provenance(**extra) -> dict:
+    """A record of how a file was made: tool version, command line, time, platform, plus ``extra``."""
+    rec = {
+        "tool": "render2spike",
+        "version": package_version(),
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv)),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
+    rec.update(extra)
+    return rec

@@ -1,0 +1,259 @@
+"""The frame contract between the render stage and the sensor stage.
+
+A *frames folder* holds the time-varying irradiance of a scene:
+
+``frames.json`` (the manifest)::
+
+    {
+      "format": "render2spike-frames", "version": 1,
+      "height": H, "width": W,
+      "channels": {"Phi": "e-/(s m^2)", "E": "lux"},
+      "interpolation": "piecewise-linear",
+      "frames": [{"file": "frame_000000.exr", "time_s": 0.0}, ...],   # sorted by time
+      "provenance": {...}, ...any extra keys the writer adds
+    }
+
+``frame_NNNNNN.exr``: one single-part float32 OpenEXR image per timestamp with
+
+* channel ``Phi``: QE-weighted photon irradiance at the focal plane [e-/(s m^2)],
+  i.e. the photoelectrons per second per square metre that a pixel with 100 %
+  fill factor would collect; :func:`sensor.units.photoelectron_rate` turns it
+  into ``rate_e`` [e-/interval] for a given profile;
+* channel ``E``: focal-plane illuminance [lux];
+* header attributes ``time_s`` (float64) and ``units`` (a string), plus
+  ``made_by`` (JSON string: how the frame was made) and any extra attributes.
+
+Between timestamps the sensor interprets ``Phi`` piecewise-linearly in time
+(see :mod:`sensor.rates`). Rows are stored top-down (row 0 is the top of the
+image, as seen by the camera).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FrameFileError
+from .fileio import atomic_path, provenance, write_json_atomic
+
+MANIFEST_NAME = "frames.json"
+FORMAT_NAME = "render2spike-frames"
+FORMAT_VERSION = 1
+CHANNEL_UNITS = {"Phi": "e-/(s m^2)", "E": "lux"}
+UNITS_STRING = "Phi: QE-weighted photon irradiance at the focal plane [e-/(s m^2)]; E: focal-plane illuminance [lux]"
+
+
+def _openexr():
+    try:
+        import OpenEXR
+    except ImportError as exc:  # pragma: no cover - declared dependency
+        from .errors import DependencyError
+        raise DependencyError("OpenEXR is not installed: run `pip install OpenEXR`") from exc
+    return OpenEXR
+
+
+def frame_filename(index: int) -> str:
+    """File name of frame ``index`` inside a frames folder."""
+    return f"frame_{index:06d}.exr"
+
+
+def write_frame(path, phi, illuminance_lux=None, *, time_s: float, attrs: dict | None = None) -> Path:
+    """Write one irradiance frame as a float32 single-part OpenEXR file, atomically.
+
+    Parameters
+    ----------
+    path : path-like
+        Destination ``.exr`` file.
+    phi : array (H, W)
+        QE-weighted photon irradiance at the focal plane [e-/(s m^2)].
+    illuminance_lux : array (H, W), optional
+        Focal-plane illuminance [lux]; zeros when omitted.
+    time_s : float
+        Timestamp of the frame [s].
+    attrs : dict, optional
+        Extra header attributes. Floats are stored as float64, ints as int,
+        strings as strings, anything else as a JSON string.
+    """
+    OpenEXR = _openexr()
+    phi = np.ascontiguousarray(phi, dtype=np.float32)
+    if phi.ndim != 2:
+        raise FrameFileError(f"Phi must be a 2-D (H, W) array, got shape {phi.shape}", path=path, field="Phi")
+    E = np.zeros_like(phi) if illuminance_lux is None else np.ascontiguousarray(illuminance_lux, dtype=np.float32)
+    if E.shape != phi.shape:
+        raise FrameFileError(f"E shape {E.shape} differs from Phi shape {phi.shape}", path=path, field="E")
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "time_s": np.array(float(time_s), dtype=np.float64),
+        "units": UNITS_STRING,
+    }
+    for key, value in (attrs or {}).items():
+        if isinstance(value, bool):
+            header[key] = str(value).lower()
+        elif isinstance(value, (int, np.integer)):
+            header[key] = int(value)
+        elif isinstance(value, (float, np.floating)):
+            header[key] = np.array(float(value), dtype=np.float64)
+        elif isinstance(value, str):
+            header[key] = value
+        else:
+            header[key] = json.dumps(value, default=str)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, {"Phi": phi, "E": E}) as f:
+            f.write(str(tmp))
+    return path
+
+
+def _header_value(v):
+    if isinstance(v, np.ndarray) and v.size == 1:
+        return float(v.reshape(-1)[0]) if v.dtype.kind == "f" else v.reshape(-1)[0].item()
+    return v
+
+
+@dataclass
+class Frame:
+    """One frame read back: arrays [units in :data:`CHANNEL_UNITS`] and its header."""
+
+    time_s: float
+    phi: np.ndarray
+    illuminance_lux: np.ndarray
+    header: dict = field(default_factory=dict)
+
+
+def read_frame(path) -> Frame:
+    """Read one frame file written by :func:`write_frame` (or any EXR with ``Phi``/``E``)."""
+    OpenEXR = _openexr()
+    path = Path(path)
+    if not path.is_file():
+        raise FrameFileError("frame file does not exist", path=path)
+    try:
+        with OpenEXR.File(str(path)) as f:
+            header = {k: _header_value(v) for k, v in f.header().items()
+                      if k not in ("channels", "dataWindow", "displayWindow", "compression", "type", "lineOrder",
+                                   "pixelAspectRatio", "screenWindowCenter", "screenWindowWidth")}
+            channels = {k: np.asarray(c.pixels) for k, c in f.channels().items()}
+    except FrameFileError:
+        raise
+    except Exception as exc:
+        raise FrameFileError(f"not a readable OpenEXR file ({exc})", path=path) from exc
+    if "Phi" not in channels:
+        raise FrameFileError(f"missing channel 'Phi' (has: {', '.join(sorted(channels))})", path=path, field="Phi")
+    if "time_s" not in header:
+        raise FrameFileError("header has no 'time_s' attribute (frame timestamp in seconds)", path=path,
+                             field="time_s")
+    phi = channels["Phi"].astype(np.float32, copy=False)
+    E = channels.get("E", np.zeros_like(phi)).astype(np.float32, copy=False)
+    return Frame(time_s=float(header["time_s"]), phi=phi, illuminance_lux=E, header=header)
+
+
+@dataclass
+class FrameSequence:
+    """A frames folder: its manifest and lazy access to the frames, in time order."""
+
+    folder: Path
+    manifest: dict
+
+    @property
+    def times_s(self) -> np.ndarray:
+        """Timestamps [s], float64, strictly increasing."""
+        return np.array([f["time_s"] for f in self.manifest["frames"]], dtype=np.float64)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.manifest["height"]), int(self.manifest["width"])
+
+    def __len__(self) -> int:
+        return len(self.manifest["frames"])
+
+    def path(self, i: int) -> Path:
+        return self.folder / self.manifest["frames"][i]["file"]
+
+    def read(self, i: int) -> Frame:
+        fr = read_frame(self.path(i))
+        if fr.phi.shape != self.shape:
+            raise FrameFileError(f"frame is {fr.phi.shape[0]}x{fr.phi.shape[1]} but {MANIFEST_NAME} says "
+                                 f"{self.shape[0]}x{self.shape[1]}", path=self.path(i))
+        return fr
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self.read(i)
+
+    def phi_stack(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Phi of frames ``start:stop`` as float32 (K, H, W) [e-/(s m^2)]."""
+        stop = len(self) if stop is None else stop
+        return np.stack([self.read(i).phi for i in range(start, stop)]) if stop > start else \
+            np.zeros((0,) + self.shape, np.float32)
+
+
+def read_frames(folder) -> FrameSequence:
+    """Open a frames folder and validate its manifest (no pixel data is read yet)."""
+    folder = Path(folder)
+    mpath = folder / MANIFEST_NAME
+    if not folder.is_dir():
+        raise FrameFileError("not a directory (expected a frames folder with frames.json)", path=folder)
+    if not mpath.is_file():
+        raise FrameFileError(f"no {MANIFEST_NAME} manifest in this folder; is it a render2spike frames folder?",
+                             path=folder)
+    try:
+        manifest = json.loads(mpath.read_text())
+    except json.JSONDecodeError as exc:
+        raise FrameFileError(f"invalid JSON ({exc})", path=mpath) from exc
+    for key in ("height", "width", "frames"):
+        if key not in manifest:
+            raise FrameFileError("missing required key", path=mpath, field=key)
+    if manifest.get("format", FORMAT_NAME) != FORMAT_NAME:
+        raise FrameFileError(f"format is '{manifest.get('format')}', expected '{FORMAT_NAME}'", path=mpath,
+                             field="format")
+    if int(manifest.get("version", 1)) > FORMAT_VERSION:
+        raise FrameFileError(f"version {manifest['version']} is newer than this reader ({FORMAT_VERSION}); "
+                             "upgrade render2spike", path=mpath, field="version")
+    frames = manifest["frames"]
+    if not frames:
+        raise FrameFileError("manifest lists no frames", path=mpath, field="frames")
+    for i, fr in enumerate(frames):
+        if "file" not in fr or "time_s" not in fr:
+            raise FrameFileError("each entry needs 'file' and 'time_s'", path=mpath, field=f"frames[{i}]")
+    t = np.array([f["time_s"] for f in frames], dtype=np.float64)
+    if np.any(np.diff(t) <= 0):
+        i = int(np.argmax(np.diff(t) <= 0))
+        raise FrameFileError(f"timestamps must increase strictly; frames[{i}] time_s={t[i]} and "
+                             f"frames[{i + 1}] time_s={t[i + 1]}", path=mpath, field="frames")
+    return FrameSequence(folder=folder, manifest=manifest)
+
+
+def write_manifest(folder, height: int, width: int, frames: list[dict], **extra) -> Path:
+    """Write ``frames.json`` atomically. ``frames``: [{"file": ..., "time_s": ...}, ...] (sorted here)."""
+    frames = sorted(frames, key=lambda f: f["time_s"])
+    manifest = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "height": int(height),
+        "width": int(width),
+        "channels": dict(CHANNEL_UNITS),
+        "interpolation": "piecewise-linear",
+        "frames": frames,
+    }
+    manifest.update(extra)
+    manifest.setdefault("provenance", provenance())
+    return write_json_atomic(Path(folder) / MANIFEST_NAME, manifest)
+
+
+def write_frames(folder, phi, times_s, illuminance_lux=None, attrs: dict | None = None, **manifest_extra) -> Path:
+    """Write a whole (K, H, W) Phi stack as a frames folder (convenience for tests and tools)."""
+    folder = Path(folder)
+    phi = np.asarray(phi, dtype=np.float32)
+    times_s = np.asarray(times_s, dtype=np.float64)
+    if phi.ndim != 3 or phi.shape[0] != times_s.shape[0]:
+        raise FrameFileError(f"need Phi (K, H, W) with K timestamps; got Phi {phi.shape}, {times_s.shape[0]} times")
+    entries = []
+    for i, t in enumerate(times_s):
+        name = frame_filename(i)
+        E = None if illuminance_lux is None else illuminance_lux[i]
+        write_frame(folder / name, phi[i], E, time_s=float(t), attrs=attrs)
+        entries.append({"file": name, "time_s": float(t)})
+    return write_manifest(folder, phi.shape[1], phi.shape[2], entries, **manifest_extra)

@@ -1,0 +1,225 @@
+"""Spike models behind one streaming interface, and their registry.
+
+A model turns lambda (expected photoelectrons per interval, float32 (B, H, W))
+into spikes (bool (B, H, W)), one block of intervals at a time, carrying its
+state (integrator charge, last spike, ...) from block to block.
+
+Randomness: block ``b`` of a stream seeded with ``seed`` draws from its own
+generator ``PCG64(SeedSequence(seed, spawn_key=(stream_key, b)))`` (the
+GalSim-style child seed for that stage and block). Blocks are fixed by absolute
+interval index, never by how the caller chunks the input, so a seed gives
+bitwise-identical spikes for any chunk size.
+
+Registered models (``MODELS``):
+
+* ``ideal``  Algorithm 1: deterministic integrate-and-fire of lambda, reset to
+  zero; no shot, dark, hot-pixel, PRNU or refractory effects (quantisation only).
+* ``elssim`` Algorithm 2, with every effect of :mod:`sensor.effects`.
+* ``isi``    an inter-spike-interval baseline in the style of RSIR /
+  NeuSpike-Net (see :class:`ISIModel`).
+
+Each model may have several *implementations* (``reference``: the
+step-by-step simulator, one interval at a time; ``fast``: event-driven, see
+:mod:`sensor.fast`). The reference is the definition.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
+                      compute_prnu, compute_shot_noise, count_threshold, dark_event_probability)
+from .errors import UnknownMethodError
+from .profile import SensorProfile
+
+#: spawn-key tags: one per model so two models with the same seed use different streams
+STREAM_KEYS = {"ideal": 0, "elssim": 1, "isi": 2}
+
+
+def block_generator(seed: int, model: str, block_index: int, implementation: str = "reference") -> np.random.Generator:
+    """The generator of one block: a child of ``seed`` keyed by model, implementation and block index."""
+    impl_key = {"reference": 0, "fast": 1}.get(implementation, 7)
+    ss = np.random.SeedSequence(int(seed), spawn_key=(STREAM_KEYS.get(model, 99), impl_key, int(block_index)))
+    return np.random.Generator(np.random.PCG64(ss))
+
+
+class SpikeModel:
+    """Interface of a streaming spike model implementation.
+
+    Subclasses set ``name`` / ``implementation`` and implement
+    :meth:`init_state` and :meth:`run_block`.
+    """
+
+    name = "base"
+    implementation = "reference"
+    #: intervals per block; fixed per implementation (part of its reproducibility contract)
+    block_intervals = 256
+
+    def __init__(self, profile: SensorProfile):
+        self.profile = profile
+
+    def init_state(self) -> dict:
+        raise NotImplementedError
+
+    def run_block(self, lam: np.ndarray, state: dict, rng: np.random.Generator | None) -> np.ndarray:
+        """Spikes bool (B, H, W) for lambda (B, H, W) [e-]; updates ``state`` in place."""
+        raise NotImplementedError
+
+
+class IdealModel(SpikeModel):
+    """Algorithm 1: V += lambda_m; spike and reset to 0 when V >= theta. Deterministic."""
+
+    name = "ideal"
+
+    def init_state(self) -> dict:
+        return {"v": np.zeros(self.profile.shape, np.float64)}
+
+    def run_block(self, lam, state, rng=None):
+        theta = self.profile.threshold_e
+        out = np.zeros(lam.shape, bool)
+        v = state["v"]
+        for i in range(lam.shape[0]):
+            v += lam[i]
+            s = v >= theta
+            v[s] = 0.0
+            out[i] = s
+        return out
+
+
+class ELSSimStep(SpikeModel):
+    """Algorithm 2, step by step (the reference definition of ``elssim``).
+
+    Per interval, in this order: refractory-scaled expected count (Eq. 6),
+    Poisson shot noise, PRNU gain, dark event (Eq. 1), hot-pixel charge
+    (Eq. 4), clip at zero, fire and reset to zero. Random draws per interval, in
+    this order: Poisson (H, W), uniform (H, W), normal (number of hot pixels).
+    """
+
+    name = "elssim"
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        p = profile
+        self.p_dark = dark_event_probability(p.dark_rate)
+        self.has_dark = bool(np.any(self.p_dark > 0))
+        self.f_ref = p.refractory_fraction.astype(np.float64)
+        self.gain = p.prnu_gain.astype(np.float64)
+        self.hot_index = np.flatnonzero(p.hot_mask)
+        self.hot_mu = p.hot_mu.reshape(-1)[self.hot_index].astype(np.float64)
+        self.hot_sigma = p.hot_sigma.reshape(-1)[self.hot_index].astype(np.float64)
+
+    def init_state(self) -> dict:
+        shape = self.profile.shape
+        return {"v": np.zeros(shape, np.float64), "spiked": np.zeros(shape, bool)}
+
+    def run_block(self, lam, state, rng):
+        theta = self.profile.threshold_e
+        out = np.zeros(lam.shape, bool)
+        v, spiked = state["v"], state["spiked"]
+        for i in range(lam.shape[0]):
+            expected = compute_collected_rate(lam[i].astype(np.float64), self.f_ref, spiked)
+            v += compute_prnu(compute_shot_noise(expected, rng), self.gain)
+            if self.has_dark:
+                v[compute_dark_events(self.p_dark, rng)] += theta
+            if self.hot_index.size:
+                vf = v.reshape(-1)
+                vf[self.hot_index] += compute_hot_pixel_charge(self.hot_index, self.hot_mu, self.hot_sigma, theta, rng)
+            spiked, v = compute_fire(v, theta)
+            out[i] = spiked
+        state["v"], state["spiked"] = v, spiked
+        return out
+
+
+class ISIModel(SpikeModel):
+    """Inter-spike-interval baseline in the style of RSIR / NeuSpike-Net.
+
+    The ISI view draws whole inter-spike intervals instead of integrating
+    interval by interval. After a spike at continuous time tau [intervals], the
+    next one comes at ``tau + ISI`` with
+
+        ISI ~ Gamma(k, 1 / q),  q = g * lambda(tau) + (mu_DC + hot_mu) * theta   [e-/interval]
+
+    i.e. the time to collect ``k = ceil(theta / g)`` electrons at the constant
+    charge rate ``q`` seen when the ISI starts. Its differences from ELSSim are
+    exactly the ones the paper criticises: dark current is a current that adds
+    to the photocurrent (coupled with light, not an independent per-interval
+    event), the intensity is frozen over each ISI, there is no refractory
+    period, and the fractional phase is kept in continuous time; the spike is
+    read out in the interval containing its time (integer-ISI quantisation).
+    Several firings inside one interval give one spike. Hot pixels add a
+    constant current ``hot_mu * theta`` (their sigma is ignored).
+    """
+
+    name = "isi"
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        p = profile
+        self.k = count_threshold(p.threshold_e, p.prnu_gain)
+        self.gain = p.prnu_gain.astype(np.float64)
+        self.dark_e = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e)
+
+    def init_state(self) -> dict:
+        # tau: time of the next firing [intervals since stream start]; NaN = not drawn (start, or no charge)
+        return {"tau": np.full(self.profile.shape, np.nan), "m": 0}
+
+    def _draw(self, idx, q, t_from, tau, rng):
+        kk = self.k.reshape(-1)[idx]
+        isi = np.full(idx.size, np.nan)  # no charge: wait, and draw again at the next interval
+        pos = q > 0
+        isi[pos] = rng.gamma(kk[pos], 1.0 / q[pos])
+        tau.reshape(-1)[idx] = t_from + isi
+
+    def run_block(self, lam, state, rng):
+        tau = state["tau"]
+        m_start = state["m"]
+        out = np.zeros(lam.shape, bool)
+        gain_f, dark_f = self.gain.reshape(-1), self.dark_e.reshape(-1)
+        for i in range(lam.shape[0]):
+            m = m_start + i
+            lam_f = lam[i].reshape(-1).astype(np.float64)
+            tf = tau.reshape(-1)
+            new = np.flatnonzero(np.isnan(tf))
+            if new.size:  # stream start: integration begins at the start of interval m
+                self._draw(new, gain_f[new] * lam_f[new] + dark_f[new], float(m), tau, rng)
+            idx = np.flatnonzero(tf < m + 1)
+            if idx.size:
+                out[i].reshape(-1)[idx] = True
+            while idx.size:
+                self._draw(idx, gain_f[idx] * lam_f[idx] + dark_f[idx], tf[idx], tau, rng)
+                idx = idx[tf[idx] < m + 1]
+        state["m"] = m_start + lam.shape[0]
+        return out
+
+
+_REFERENCE = {"ideal": IdealModel, "elssim": ELSSimStep, "isi": ISIModel}
+_FAST: dict[str, type] = {}
+
+
+def register_fast(name: str, cls: type) -> None:
+    """Register a fast (event-driven) implementation of model ``name``."""
+    _FAST[name] = cls
+
+
+MODELS = tuple(_REFERENCE)
+IMPLEMENTATIONS = ("fast", "reference")
+
+
+def get_model(name: str, profile: SensorProfile, implementation: str = "fast") -> SpikeModel:
+    """Instantiate model ``name`` with ``implementation`` ('fast' falls back to 'reference' when none exists)."""
+    if name not in _REFERENCE:
+        raise UnknownMethodError("spike model", name, _REFERENCE)
+    if implementation not in IMPLEMENTATIONS:
+        raise UnknownMethodError("implementation", implementation, IMPLEMENTATIONS)
+    if implementation == "fast":
+        _load_fast()
+        if name in _FAST:
+            return _FAST[name](profile)
+    return _REFERENCE[name](profile)
+
+
+def _load_fast() -> None:
+    try:
+        from . import fast  # noqa: F401  (registers itself)
+    except ImportError:
+        pass

@@ -1,0 +1,355 @@
+"""Sensor profiles: one drawn instance of a spike camera, stored in one file.
+
+A :class:`SensorProfile` holds the scalar design parameters of a spike camera
+and its per-pixel fixed-pattern maps. The maps are drawn once (by
+:meth:`SensorProfile.synthetic`) or estimated once (by calibration) and then
+stored; every simulation reads them from the profile, so two simulations of the
+same profile see the same sensor.
+
+File format (``.npz``, version 1)
+---------------------------------
+A numpy ``.npz`` archive (zip, compressed) holding
+
+* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields, the QE curve,
+  the provenance of every value and the format version;
+* the maps, each float32 (H, W) unless noted:
+  ``dark_rate`` (mu_DC, expected dark events per interval), ``hot_mask`` (bool),
+  ``hot_mu`` and ``hot_sigma`` (hot-pixel charge per interval in units of the
+  threshold, zero outside the mask), ``prnu_gain`` (dimensionless, mean ~1),
+  ``refractory_s`` (seconds).
+
+See ``docs/sensor.md`` for the meaning of every field.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ProfileError
+from .fileio import atomic_path, provenance as _provenance
+from .spectral import SpectralCurve
+from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S
+
+PROFILE_FORMAT = "render2spike-sensor-profile"
+PROFILE_VERSION = 1
+DATA_DIR = Path(__file__).with_name("data")
+MAP_NAMES = ("dark_rate", "hot_mask", "hot_mu", "hot_sigma", "prnu_gain", "refractory_s")
+MAP_UNITS = {
+    "dark_rate": "expected dark events per interval (mu_DC, Eq. 1-2)",
+    "hot_mask": "bool, True where the pixel is hot (Eq. 3)",
+    "hot_mu": "mean hot-pixel charge per interval, in units of the threshold (Eq. 4)",
+    "hot_sigma": "std of hot-pixel charge per interval, in units of the threshold (Eq. 4)",
+    "prnu_gain": "photo-response gain, dimensionless, mean ~1 (Eq. 5)",
+    "refractory_s": "refractory (recharge) time after a spike [s] (Eq. 6)",
+}
+
+
+def generic_cmos_qe() -> SpectralCurve:
+    """A generic front-side-illuminated CMOS QE curve (peak ~0.55 near 550 nm).
+
+    Provenance: an estimate; the shape follows typical published FSI CMOS
+    quantum-efficiency curves (rising from ~0.1 at 400 nm, peaking near 0.55 at
+    530-560 nm, falling to ~0.1 at 900 nm). No Vidar QE curve is published.
+    """
+    wl = np.array([350, 400, 450, 500, 550, 600, 650, 700, 750, 800, 850, 900, 950, 1000], dtype=np.float64)
+    qe = np.array([0.02, 0.12, 0.33, 0.48, 0.55, 0.52, 0.45, 0.37, 0.29, 0.22, 0.15, 0.10, 0.05, 0.02])
+    return SpectralCurve(wl, qe, unit="1", name="generic FSI CMOS (estimate)")
+
+
+@dataclass
+class SensorProfile:
+    """One spike camera instance: design parameters and fixed-pattern maps.
+
+    Scalars
+    -------
+    name : str
+        Identifier stored in spike files (``profile_id``).
+    height, width : int
+        Active resolution [pixels].
+    interval_s : float
+        Read-out interval T_r [s] (50 us).
+    clock_hz : float
+        Sensor clock CLK [Hz]; the time unit is dt = 2/CLK.
+    threshold_e : float
+        Integrate-and-fire threshold theta [e-].
+    pixel_pitch_m : float
+        Pixel pitch [m].
+    fill_factor : float
+        Photosensitive fraction of the pixel area.
+    raw_width : int
+        Width of raw .dat captures (416 for Vidar; the extra columns are dropped).
+    qe : SpectralCurve
+        Quantum efficiency vs wavelength [nm], used by the render stage.
+
+    Maps (H, W)
+    -----------
+    See :data:`MAP_UNITS`.
+
+    provenance : dict
+        For each field, where its value comes from.
+    """
+
+    name: str
+    height: int
+    width: int
+    threshold_e: float
+    dark_rate: np.ndarray
+    hot_mask: np.ndarray
+    hot_mu: np.ndarray
+    hot_sigma: np.ndarray
+    prnu_gain: np.ndarray
+    refractory_s: np.ndarray
+    interval_s: float = INTERVAL_S
+    clock_hz: float = CLOCK_HZ
+    pixel_pitch_m: float = 20e-6
+    fill_factor: float = 0.5
+    raw_width: int | None = None
+    qe: SpectralCurve = field(default_factory=generic_cmos_qe)
+    provenance: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.height, self.width = int(self.height), int(self.width)
+        shape = (self.height, self.width)
+        for nm in MAP_NAMES:
+            arr = np.asarray(getattr(self, nm))
+            if arr.ndim == 0:
+                arr = np.full(shape, arr)
+            if arr.shape != shape:
+                raise ProfileError(f"map has shape {arr.shape}, expected (height, width) = {shape}", field=nm)
+            setattr(self, nm, arr.astype(bool if nm == "hot_mask" else np.float32))
+        self.validate()
+
+    # ------------------------------------------------------------------ checks
+    def validate(self, path=None) -> None:
+        """Raise :class:`ProfileError` naming the first field that is out of range."""
+        def bad(fieldname, msg):
+            raise ProfileError(msg, path=path, field=fieldname)
+        if self.height < 1 or self.width < 1:
+            bad("height/width", f"resolution must be positive, got {self.height}x{self.width}")
+        if not self.threshold_e > 0:
+            bad("threshold_e", f"threshold must be > 0 electrons, got {self.threshold_e}")
+        if not self.interval_s > 0:
+            bad("interval_s", f"must be > 0 s, got {self.interval_s}")
+        if not self.clock_hz > 0:
+            bad("clock_hz", f"must be > 0 Hz, got {self.clock_hz}")
+        if not (0 < self.fill_factor <= 1):
+            bad("fill_factor", f"must be in (0, 1], got {self.fill_factor}")
+        if not self.pixel_pitch_m > 0:
+            bad("pixel_pitch_m", f"must be > 0 m, got {self.pixel_pitch_m}")
+        if not np.all(np.isfinite(self.dark_rate)) or np.any(self.dark_rate < 0):
+            bad("dark_rate", "must be finite and >= 0 (expected dark events per interval)")
+        if not np.all(np.isfinite(self.prnu_gain)) or np.any(self.prnu_gain <= 0):
+            bad("prnu_gain", "must be finite and > 0")
+        if np.any(self.hot_sigma < 0) or not np.all(np.isfinite(self.hot_sigma)) or \
+                not np.all(np.isfinite(self.hot_mu)):
+            bad("hot_sigma", "hot_mu must be finite and hot_sigma finite and >= 0")
+        if np.any((self.hot_mu != 0) & ~self.hot_mask) or np.any((self.hot_sigma != 0) & ~self.hot_mask):
+            bad("hot_mu", "hot_mu / hot_sigma must be zero outside hot_mask")
+        if np.any(self.refractory_s < 0) or np.any(self.refractory_s > self.interval_s):
+            bad("refractory_s", f"must lie in [0, interval_s={self.interval_s}] s")
+
+    # ------------------------------------------------------------- properties
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height, self.width
+
+    @property
+    def time_unit_s(self) -> float:
+        """dt = 2 / CLK [s]."""
+        return 2.0 / self.clock_hz
+
+    @property
+    def refractory_fraction(self) -> np.ndarray:
+        """Fraction of the interval after a spike during which no light is collected (Eq. 6)."""
+        return (self.refractory_s / self.interval_s).astype(np.float32)
+
+    @property
+    def pixel_area_m2(self) -> float:
+        return self.pixel_pitch_m ** 2
+
+    # --------------------------------------------------------------- building
+    @classmethod
+    def synthetic(cls, height: int, width: int, *, threshold_e: float, dark_rate: float = 0.0,
+                  dark_rate_spread: float = 0.0, prnu_sigma: float = 0.0, hot_pixel_fraction: float = 0.0,
+                  hot_mu: float = 0.05, hot_mu_spread: float = 0.5, hot_sigma: float = 0.02,
+                  refractory_s: float = TIME_UNIT_S, seed: int = 0, name: str | None = None,
+                  interval_s: float = INTERVAL_S, clock_hz: float = CLOCK_HZ, pixel_pitch_m: float = 20e-6,
+                  fill_factor: float = 0.5, raw_width: int | None = None, qe: SpectralCurve | None = None,
+                  provenance: dict | None = None) -> "SensorProfile":
+        """Draw a sensor instance with chosen statistics.
+
+        Parameters
+        ----------
+        height, width : int
+            Resolution [pixels].
+        threshold_e : float
+            Threshold [e-].
+        dark_rate : float
+            Population mean of mu_DC [dark events per interval].
+        dark_rate_spread : float
+            Relative spread (sigma of the log) of a log-normal dark-rate map; 0 = uniform.
+        prnu_sigma : float
+            Standard deviation of the PRNU gain (Gaussian around 1, clipped to >= 0.05).
+        hot_pixel_fraction : float
+            Fraction of pixels drawn as hot.
+        hot_mu : float
+            Median hot-pixel charge per interval [threshold units].
+        hot_mu_spread : float
+            Sigma of the log of hot_mu across hot pixels.
+        hot_sigma : float
+            Standard deviation of the hot-pixel charge per interval [threshold units].
+        refractory_s : float
+            Refractory time [s], the same for all pixels (default dt = 2/CLK).
+        seed : int
+            Seed of the fixed-pattern draw (one ``numpy.random.Generator``).
+        """
+        h, w = int(height), int(width)
+        ss = np.random.SeedSequence(int(seed))
+        g_dark, g_prnu, g_hot = (np.random.Generator(np.random.PCG64(s)) for s in ss.spawn(3))
+        if dark_rate_spread > 0:
+            # log-normal with the requested mean
+            s = float(dark_rate_spread)
+            dark = dark_rate * np.exp(g_dark.normal(-0.5 * s * s, s, size=(h, w)))
+        else:
+            dark = np.full((h, w), dark_rate)
+        gain = np.ones((h, w)) if prnu_sigma <= 0 else np.clip(g_prnu.normal(1.0, prnu_sigma, (h, w)), 0.05, None)
+        n_hot = int(round(hot_pixel_fraction * h * w))
+        mask = np.zeros(h * w, bool)
+        hmu = np.zeros(h * w)
+        hsig = np.zeros(h * w)
+        if n_hot:
+            idx = g_hot.choice(h * w, size=n_hot, replace=False)
+            mask[idx] = True
+            hmu[idx] = hot_mu * np.exp(g_hot.normal(0.0, hot_mu_spread, n_hot)) if hot_mu_spread > 0 else hot_mu
+            hsig[idx] = hot_sigma
+        prov = {
+            "maps": f"drawn by SensorProfile.synthetic(seed={seed}, dark_rate={dark_rate}, "
+                    f"dark_rate_spread={dark_rate_spread}, prnu_sigma={prnu_sigma}, "
+                    f"hot_pixel_fraction={hot_pixel_fraction}, hot_mu={hot_mu}, hot_mu_spread={hot_mu_spread}, "
+                    f"hot_sigma={hot_sigma})",
+        }
+        prov.update(provenance or {})
+        return cls(name=name or f"synthetic-{h}x{w}-seed{seed}", height=h, width=w, threshold_e=float(threshold_e),
+                   dark_rate=dark, hot_mask=mask.reshape(h, w), hot_mu=hmu.reshape(h, w),
+                   hot_sigma=hsig.reshape(h, w), prnu_gain=gain, refractory_s=np.full((h, w), refractory_s),
+                   interval_s=interval_s, clock_hz=clock_hz, pixel_pitch_m=pixel_pitch_m, fill_factor=fill_factor,
+                   raw_width=raw_width, qe=qe or generic_cmos_qe(), provenance=prov)
+
+    def window(self, top: int, left: int, height: int, width: int, name: str | None = None) -> "SensorProfile":
+        """The same sensor restricted to a rectangular window of pixels (for small experiments)."""
+        if top < 0 or left < 0 or top + height > self.height or left + width > self.width:
+            raise ProfileError(f"window rows {top}:{top + height}, cols {left}:{left + width} is outside "
+                               f"the {self.height}x{self.width} sensor")
+        sl = (slice(top, top + height), slice(left, left + width))
+        maps = {nm: getattr(self, nm)[sl].copy() for nm in MAP_NAMES}
+        return replace(self, name=name or f"{self.name}[{top}:{top + height},{left}:{left + width}]",
+                       height=height, width=width, raw_width=None, **maps)
+
+    def replace(self, **changes) -> "SensorProfile":
+        """A copy with ``changes`` applied (validated again)."""
+        return replace(self, **changes)
+
+    # -------------------------------------------------------------------- I/O
+    def to_meta(self) -> dict:
+        return {
+            "format": PROFILE_FORMAT,
+            "version": PROFILE_VERSION,
+            "name": self.name,
+            "height": self.height,
+            "width": self.width,
+            "interval_s": self.interval_s,
+            "clock_hz": self.clock_hz,
+            "threshold_e": self.threshold_e,
+            "pixel_pitch_m": self.pixel_pitch_m,
+            "fill_factor": self.fill_factor,
+            "raw_width": self.raw_width,
+            "qe": self.qe.to_dict(),
+            "map_units": MAP_UNITS,
+            "provenance": self.provenance,
+            "meta": self.meta,
+        }
+
+    def save(self, path) -> Path:
+        """Write the profile to ``path`` (.npz), atomically. Returns the path."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        meta = self.to_meta()
+        meta.setdefault("meta", {})
+        meta["meta"] = dict(meta["meta"], written_by=_provenance())
+        buf = io.BytesIO()
+        np.savez_compressed(buf, meta_json=np.frombuffer(json.dumps(meta).encode(), np.uint8),
+                            **{nm: getattr(self, nm) for nm in MAP_NAMES})
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(buf.getvalue())
+        return path
+
+    @classmethod
+    def load(cls, name_or_path) -> "SensorProfile":
+        """Load a bundled profile by name (``vidar-default``) or a profile file by path."""
+        p = Path(str(name_or_path))
+        if not p.exists():
+            bundled = DATA_DIR / f"{name_or_path}.npz"
+            if bundled.exists():
+                p = bundled
+            else:
+                names = ", ".join(bundled_profiles())
+                raise ProfileError(f"no profile file at this path and no bundled profile of this name "
+                                   f"(bundled: {names})", path=name_or_path)
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                meta = json.loads(bytes(z["meta_json"]).decode())
+                maps = {nm: z[nm] for nm in MAP_NAMES if nm in z}
+        except (OSError, ValueError, KeyError) as exc:
+            raise ProfileError(f"not a readable render2spike profile ({exc})", path=p) from exc
+        if meta.get("format") != PROFILE_FORMAT:
+            raise ProfileError(f"format is '{meta.get('format')}', expected '{PROFILE_FORMAT}'", path=p,
+                               field="format")
+        if int(meta.get("version", 0)) > PROFILE_VERSION:
+            raise ProfileError(f"profile version {meta['version']} is newer than this reader "
+                               f"({PROFILE_VERSION}); upgrade render2spike", path=p, field="version")
+        missing = [nm for nm in MAP_NAMES if nm not in maps]
+        if missing:
+            raise ProfileError(f"missing maps: {', '.join(missing)}", path=p)
+        try:
+            return cls(name=meta["name"], height=meta["height"], width=meta["width"],
+                       threshold_e=meta["threshold_e"], interval_s=meta["interval_s"], clock_hz=meta["clock_hz"],
+                       pixel_pitch_m=meta["pixel_pitch_m"], fill_factor=meta["fill_factor"],
+                       raw_width=meta.get("raw_width"), qe=SpectralCurve.from_dict(meta["qe"]),
+                       provenance=meta.get("provenance", {}), meta=meta.get("meta", {}), **maps)
+        except KeyError as exc:
+            raise ProfileError("missing required field", path=p, field=str(exc.args[0])) from exc
+        except ProfileError as exc:
+            raise ProfileError(str(exc), path=p) from exc
+
+    # ---------------------------------------------------------------- summary
+    def summary(self) -> dict:
+        """Scalar statistics of the profile, for ``render2spike info`` and reports."""
+        hm = self.hot_mask
+        return {
+            "name": self.name,
+            "resolution": f"{self.height} x {self.width}",
+            "interval_s": self.interval_s,
+            "clock_hz": self.clock_hz,
+            "threshold_e": self.threshold_e,
+            "pixel_pitch_um": self.pixel_pitch_m * 1e6,
+            "fill_factor": self.fill_factor,
+            "dark_rate_mean_per_interval": float(self.dark_rate[~hm].mean()) if (~hm).any() else 0.0,
+            "dark_rate_mean_hz": float(self.dark_rate[~hm].mean() / self.interval_s) if (~hm).any() else 0.0,
+            "hot_pixels": int(hm.sum()),
+            "hot_mu_mean": float(self.hot_mu[hm].mean()) if hm.any() else 0.0,
+            "prnu_gain_std": float(self.prnu_gain.std()),
+            "refractory_s_mean": float(self.refractory_s.mean()),
+            "qe_peak": float(self.qe.values.max()),
+        }
+
+
+def bundled_profiles() -> list[str]:
+    """Names of the profiles shipped with the package."""
+    return sorted(p.stem for p in DATA_DIR.glob("*.npz"))

@@ -1,0 +1,166 @@
+"""Spike files: SpikeCV/Spike-Zoo ``.dat`` and the metadata container ``.npz``.
+
+``.dat`` layout (bit-compatible with SpikeCV and Spike-Zoo)
+-----------------------------------------------------------
+No header. Frame after frame, each ``H * W / 8`` bytes. Within a frame, pixel
+``p = r * W + c`` of the *stored* frame is bit ``p % 8`` (least significant bit
+first) of byte ``p // 8``. Rows are stored bottom-up: stored row ``r`` is image
+row ``H - 1 - r`` (a vertical flip, no horizontal flip). Raw Vidar captures are
+416 columns wide; ``drop_columns=16`` (or ``raw_width=416``) drops the 16 extra
+columns on the right of the stored frame after reading.
+
+Container ``.npz`` (``format: render2spike-spikes``, version 1)
+--------------------------------------------------------------
+``packed``: uint8 (T, ceil(H*W/8)) bit-packed frames in image orientation
+(``numpy.packbits`` of the row-major frame, ``bitorder='little'``);
+``meta_json``: UTF-8 JSON with ``height``, ``width``, ``n_intervals``,
+``interval_s``, ``model``, ``implementation``, ``profile_id``, ``seed``,
+``source`` and ``provenance``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SpikeFileError
+from .fileio import atomic_path, provenance
+
+SPIKES_FORMAT = "render2spike-spikes"
+SPIKES_VERSION = 1
+
+
+# ----------------------------------------------------------------------- .dat
+def pack_dat_frames(spikes) -> np.ndarray:
+    """bool (T, H, W) image-orientation spikes -> uint8 (T, H*W/8) .dat frames (flipped, LSB first)."""
+    s = np.asarray(spikes, dtype=bool)
+    if s.ndim != 3:
+        raise SpikeFileError(f"spikes must be (T, H, W); got {s.shape}")
+    T, H, W = s.shape
+    if (H * W) % 8:
+        raise SpikeFileError(f"H*W = {H * W} is not a multiple of 8; .dat frames need whole bytes")
+    return np.packbits(s[:, ::-1, :].reshape(T, H * W), axis=1, bitorder="little")
+
+
+def unpack_dat_frames(frames, height: int, width: int) -> np.ndarray:
+    """uint8 (T, H*W/8) .dat frames -> bool (T, H, W) in image orientation."""
+    T = frames.shape[0]
+    bits = np.unpackbits(frames, axis=1, bitorder="little", count=height * width).astype(bool)
+    return bits.reshape(T, height, width)[:, ::-1, :]
+
+
+def write_dat(path, spikes) -> Path:
+    """Write bool spikes (T, H, W) [image orientation] to a SpikeCV-compatible .dat, atomically."""
+    frames = pack_dat_frames(spikes)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        frames.tofile(tmp)
+    return path
+
+
+def dat_frame_count(path, height: int = 250, width: int = 400) -> int:
+    """Number of whole frames in a .dat file; error if the size is not a whole number of frames."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpikeFileError("file does not exist", path=path)
+    if (height * width) % 8:
+        raise SpikeFileError(f"height*width = {height * width} is not a multiple of 8", path=path)
+    frame_bytes = height * width // 8
+    size = path.stat().st_size
+    if size % frame_bytes:
+        raise SpikeFileError(f"file size {size} bytes is not a whole number of {height}x{width} frames "
+                             f"({frame_bytes} bytes each; {size // frame_bytes} frames and {size % frame_bytes} "
+                             f"bytes left over). Check --height/--width (raw Vidar captures are 416 wide)",
+                             path=path)
+    return size // frame_bytes
+
+
+def read_dat(path, height: int = 250, width: int = 400, *, drop_columns: int = 0, start: int = 0,
+             count: int | None = None) -> np.ndarray:
+    """Read a SpikeCV-compatible .dat file as bool (T, H, W) in image orientation.
+
+    Parameters
+    ----------
+    path : path-like
+        The .dat file.
+    height, width : int
+        Stored frame size (use ``width=416, drop_columns=16`` for raw Vidar captures).
+    drop_columns : int
+        Columns to drop on the right after reading (416 -> 400 with 16).
+    start, count : int
+        Read frames ``start .. start+count-1`` only (memory-mapped).
+    """
+    n = dat_frame_count(path, height, width)
+    frame_bytes = height * width // 8
+    count = n - start if count is None else int(count)
+    if start < 0 or count < 0 or start + count > n:
+        raise SpikeFileError(f"frames {start}..{start + count - 1} requested but the file has {n}", path=path)
+    if count == 0:
+        return np.zeros((0, height, width - drop_columns), bool)
+    mm = np.memmap(path, dtype=np.uint8, mode="r", offset=start * frame_bytes, shape=(count, frame_bytes))
+    spikes = unpack_dat_frames(np.asarray(mm), height, width)
+    if drop_columns:
+        spikes = spikes[:, :, :width - drop_columns]
+    return spikes
+
+
+# --------------------------------------------------------------- container
+def write_spikes(path, spikes=None, *, packed=None, height=None, width=None, interval_s: float, model: str,
+                 profile_id: str, seed, source: str = "", implementation: str = "", extra: dict | None = None) -> Path:
+    """Write spikes with their metadata to a compressed ``.npz`` container, atomically.
+
+    Give either ``spikes`` bool (T, H, W) or ``packed`` uint8 (T, ceil(H*W/8))
+    with ``height`` and ``width``.
+    """
+    if packed is None:
+        s = np.asarray(spikes, bool)
+        if s.ndim != 3:
+            raise SpikeFileError(f"spikes must be (T, H, W); got {s.shape}")
+        T, height, width = s.shape
+        packed = np.packbits(s.reshape(T, -1), axis=1, bitorder="little")
+    meta = {"format": SPIKES_FORMAT, "version": SPIKES_VERSION, "height": int(height), "width": int(width),
+            "n_intervals": int(packed.shape[0]), "interval_s": float(interval_s), "model": model,
+            "implementation": implementation, "profile_id": profile_id, "seed": seed, "source": str(source),
+            "provenance": provenance()}
+    meta.update(extra or {})
+    buf = io.BytesIO()
+    np.savez_compressed(buf, packed=packed, meta_json=np.frombuffer(json.dumps(meta, default=str).encode(), np.uint8))
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getvalue())
+    return path
+
+
+def read_spikes_meta(path) -> dict:
+    """The metadata of a spike container (no spike data is decoded)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta_json"]).decode())
+    except (OSError, ValueError, KeyError) as exc:
+        raise SpikeFileError(f"not a render2spike spike container ({exc})", path=path) from exc
+    if meta.get("format") != SPIKES_FORMAT:
+        raise SpikeFileError(f"format is '{meta.get('format')}', expected '{SPIKES_FORMAT}'", path=path,
+                             field="format")
+    return meta
+
+
+def read_spikes(path, height: int = 250, width: int = 400, drop_columns: int = 0):
+    """Read spikes from a container (.npz) or a .dat file: returns (bool (T, H, W), meta dict).
+
+    For .dat files (no metadata) ``height``/``width``/``drop_columns`` give the
+    layout and the meta dict holds only those.
+    """
+    path = Path(path)
+    if path.suffix.lower() == ".dat":
+        s = read_dat(path, height, width, drop_columns=drop_columns)
+        return s, {"height": s.shape[1], "width": s.shape[2], "n_intervals": s.shape[0], "source": str(path)}
+    meta = read_spikes_meta(path)
+    with np.load(path, allow_pickle=False) as z:
+        packed = z["packed"]
+    H, W = meta["height"], meta["width"]
+    s = np.unpackbits(packed, axis=1, bitorder="little", count=H * W).astype(bool).reshape(-1, H, W)
+    return s, meta
