@@ -1,0 +1,276 @@
+"""Calibrate a sensor profile from dark and flat-field spike recordings (paper Eqs. 2-5).
+
+Estimators (see ``docs/sensor.md`` for the derivations and departures):
+
+* **Dark current** (Eq. 2): pooled over all dark recordings, the per-pixel
+  spike fraction ``p`` estimates the per-interval dark-event probability, so
+  ``mu_DC = -ln(1 - p)`` (the exact inverse of ``p = 1 - exp(-mu_DC)``; the
+  paper uses ``p`` itself, equal to first order).
+* **Hot pixels** (Eqs. 3-4): a pixel is hot when its pooled dark spike fraction
+  exceeds the population median by ``hot_threshold`` spikes per interval
+  (theta_HT; the paper thresholds the first recording only). A hot pixel's
+  ordinary dark events get the population median mu_DC; its hot charge
+  (``mu_HP``, ``sigma_HP`` in threshold units per interval) is fitted to the mean
+  and variance of its dark inter-spike intervals with the exact numerical
+  first-passage model (:func:`sensor.theory.fit_hot_pixel`).
+* **PRNU** (Eq. 5): each flat recording's per-pixel spike rate is converted to
+  an effective photoelectron rate by inverting the exact renewal relation
+  (refractory period, reset to zero and the pixel's own dark rate removed; the
+  paper subtracts mu_DC from TFP, which is biased at high rates). The gain is
+  the slope of a least-squares line through the origin of each pixel's rate
+  against the level mean over all levels (the paper's regression). Gains are
+  normalised to mean 1 over non-hot pixels. Because the model multiplies
+  photoelectron *counts* by the gain, the identifiable quantity is the
+  effective gain ``theta / ceil(theta / g)``.
+
+Threshold, pixel pitch, fill factor, QE, clock and refractory time cannot be
+identified from dark and flat recordings of unknown brightness; they are taken
+from a base profile.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CalibrationError
+from .fileio import provenance, write_json_atomic
+from .profile import SensorProfile
+from .spikefile import read_spikes
+from .theory import RateInverter, fit_hot_pixel
+
+#: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
+DEFAULT_HOT_THRESHOLD = 0.02
+
+
+@dataclass
+class CalibrationReport:
+    """Numbers and maps describing a calibration, for the PNG/JSON report."""
+
+    n_dark: int
+    n_flat: int
+    dark_intervals: int
+    flat_intervals: list
+    hot_threshold: float
+    numbers: dict = field(default_factory=dict)
+    dark_fraction: np.ndarray | None = None
+    flat_levels_e: list = field(default_factory=list)
+    prnu_se: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        return {"n_dark_recordings": self.n_dark, "n_flat_recordings": self.n_flat,
+                "dark_intervals_total": self.dark_intervals, "flat_intervals": self.flat_intervals,
+                "hot_threshold_spikes_per_interval": self.hot_threshold,
+                "flat_levels_e_per_interval": self.flat_levels_e, **self.numbers}
+
+
+def _as_recording(x, height, width, drop_columns, what, i):
+    if isinstance(x, np.ndarray):
+        s = x
+    else:
+        s, _ = read_spikes(x, height=height, width=width, drop_columns=drop_columns)
+    s = np.asarray(s)
+    if s.ndim != 3 or s.shape[0] < 2:
+        raise CalibrationError(f"{what} recording {i} must be (T >= 2, H, W) spikes; got shape {s.shape}",
+                               path=None if isinstance(x, np.ndarray) else x)
+    return s.astype(bool, copy=False)
+
+
+def _isi_stats(trains: list[np.ndarray]):
+    """Pooled ISIs (differences of consecutive spike indices) from several spike-index arrays."""
+    d = [np.diff(t) for t in trains if t.size >= 2]
+    return np.concatenate(d) if d else np.zeros(0)
+
+
+def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_threshold: float = DEFAULT_HOT_THRESHOLD,
+              name: str | None = None, height: int | None = None, width: int | None = None, drop_columns: int = 0,
+              min_hot_isis: int = 20, progress=None):
+    """Estimate a :class:`SensorProfile` from dark and flat-field recordings.
+
+    Parameters
+    ----------
+    dark : list of (array (T, H, W) bool | path)
+        Dark recordings (the paper uses 20). Paths: .dat or spike containers.
+    flat : list of (array | path)
+        Flat-field recordings (no lens, uniform light), one per brightness level;
+        at least two levels with a usable signal.
+    base : SensorProfile or str
+        Supplies what spike recordings cannot identify: threshold, refractory
+        time, pitch, fill factor, QE, clock, interval.
+    hot_threshold : float
+        theta_HT: spikes per interval above the median dark rate that make a pixel hot.
+    height, width, drop_columns : int
+        Layout of .dat inputs (default: the base profile's).
+    min_hot_isis : int
+        Hot pixels with fewer dark ISIs than this get their mean ISI only (sigma_HP = 0).
+    progress : callable, optional
+        ``progress(message)`` called as work advances.
+
+    Returns
+    -------
+    (SensorProfile, CalibrationReport)
+    """
+    say = progress or (lambda msg: None)
+    base = base if isinstance(base, SensorProfile) else SensorProfile.load(base)
+    if not dark:
+        raise CalibrationError("no dark recordings given (need at least 1; the paper uses 20)", field="--dark")
+    if len(flat) < 2:
+        raise CalibrationError(f"need flat-field recordings at >= 2 brightness levels for the PRNU regression; got "
+                               f"{len(flat)}", field="--flat")
+    H = height or base.height
+    Wd = (width or (base.raw_width if drop_columns else base.width))
+
+    # ---- dark: pooled counts and per-pixel spike-index trains (for hot-pixel ISIs)
+    counts = None
+    n_int = 0
+    dark_recs = []
+    for i, x in enumerate(dark):
+        s = _as_recording(x, H, Wd, drop_columns, "dark", i)
+        if counts is None:
+            counts = np.zeros(s.shape[1:], np.int64)
+            shape = s.shape[1:]
+        elif s.shape[1:] != shape:
+            raise CalibrationError(f"dark recording {i} is {s.shape[1:]}, the first one is {shape}")
+        counts += s.sum(axis=0)
+        n_int += s.shape[0]
+        dark_recs.append(x if not isinstance(x, np.ndarray) else s)
+        say(f"dark {i + 1}/{len(dark)}: {s.shape[0]} intervals")
+    if shape != base.shape:
+        raise CalibrationError(f"recordings are {shape[0]}x{shape[1]} but the base profile '{base.name}' is "
+                               f"{base.height}x{base.width}; pass a base profile of the same size")
+    p_dark = counts / n_int
+    median_p = float(np.median(p_dark))
+    hot = (p_dark - median_p) >= hot_threshold
+    p_normal = np.where(hot, median_p, p_dark)
+    mu_dc = -np.log1p(-np.clip(p_normal, 0.0, 1.0 - 1e-12))
+
+    # ---- hot pixels: ISI moments from the dark recordings
+    hot_idx = np.flatnonzero(hot)
+    hot_mu = np.zeros(shape, np.float64)
+    hot_sigma = np.zeros(shape, np.float64)
+    hot_n_isi = np.zeros(shape, np.int64)
+    if hot_idx.size:
+        trains = {j: [] for j in hot_idx}
+        for i, x in enumerate(dark_recs):
+            s = x if isinstance(x, np.ndarray) else _as_recording(x, H, Wd, drop_columns, "dark", i)
+            flat_s = s.reshape(s.shape[0], -1)[:, hot_idx]
+            for c, j in enumerate(hot_idx):
+                trains[j].append(np.flatnonzero(flat_s[:, c]))
+        for c, j in enumerate(hot_idx):
+            isi = _isi_stats(trains[j])
+            r, cc = np.unravel_index(j, shape)
+            hot_n_isi[r, cc] = isi.size
+            if isi.size >= 2:
+                m, v = float(isi.mean()), float(isi.var(ddof=1))
+                if isi.size >= min_hot_isis:
+                    mu, sg = fit_hot_pixel(m, v, p_dark=median_p)
+                else:
+                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=median_p)[0], 0.0
+            else:  # too few spikes for an ISI: use the excess rate
+                mu, sg = float(p_dark.reshape(-1)[j] - median_p), 0.0
+            hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
+        say(f"hot pixels: {hot_idx.size}")
+
+    # ---- flat fields: effective photoelectron rates -> PRNU gain
+    f_ref = float(np.median(base.refractory_fraction))
+    inverter = RateInverter(base.threshold_e, f_ref, p_dark_max=float(p_normal[~hot].max()) if (~hot).any() else 0.0)
+    lam_levels = []
+    flat_ints = []
+    rates_levels = []
+    for i, x in enumerate(flat):
+        s = _as_recording(x, H, Wd, drop_columns, "flat", i)
+        if s.shape[1:] != shape:
+            raise CalibrationError(f"flat recording {i} is {s.shape[1:]}, the dark recordings are {shape}")
+        r = s.mean(axis=0, dtype=np.float64)
+        rates_levels.append(r)
+        lam_levels.append(inverter(r, p_normal))
+        flat_ints.append(int(s.shape[0]))
+        say(f"flat {i + 1}/{len(flat)}: mean spike rate {r.mean():.4f} per interval")
+    lam = np.stack(lam_levels)  # (K, H, W)
+    normal = ~hot
+    usable = []
+    for kk in range(lam.shape[0]):
+        mean_rate = rates_levels[kk][normal].mean()
+        ok = np.isfinite(lam[kk][normal]).all() and mean_rate > 2 * max(median_p, 1e-6) and mean_rate < 0.9
+        usable.append(bool(ok))
+    if sum(usable) < 1:
+        raise CalibrationError("no flat-field level has a usable signal (mean spike rate must be above twice the "
+                               f"dark rate {2 * median_p:.2e} and below 0.9 spikes per interval); record brighter "
+                               "or dimmer flats", field="--flat")
+    L = np.array([lam[kk][normal].mean() for kk in range(lam.shape[0])])
+    use = np.array(usable)
+    lam_u = np.nan_to_num(lam[use])
+    gain = np.tensordot(L[use], lam_u, axes=(0, 0)) / np.sum(L[use] ** 2)
+    gain = gain / gain[normal].mean()
+    gain = np.where(hot, 1.0, gain)
+    gain = np.clip(gain, 0.05, None)
+
+    prof = base.replace(
+        name=name or f"calibrated-{base.name}",
+        dark_rate=mu_dc.astype(np.float32), hot_mask=hot, hot_mu=hot_mu.astype(np.float32),
+        hot_sigma=hot_sigma.astype(np.float32), prnu_gain=gain.astype(np.float32),
+        provenance=dict(base.provenance, **{
+            "dark_rate": f"calibrated: -ln(1 - p) of the pooled dark spike fraction over {len(dark)} recordings "
+                         f"({n_int} intervals)",
+            "hot_mask/hot_mu/hot_sigma": f"calibrated: hot if dark fraction - median >= {hot_threshold}; "
+                                         "mu/sigma fitted to dark ISI mean/variance (exact first-passage model)",
+            "prnu_gain": f"calibrated: slope through the origin of dead-time-corrected flat rates vs level mean, "
+                         f"{int(use.sum())} of {len(flat)} levels used",
+        }),
+        meta=dict(base.meta, calibration=provenance(n_dark=len(dark), n_flat=len(flat))),
+    )
+    numbers = {
+        "median_dark_fraction": median_p,
+        "mean_dark_rate_hz": float(mu_dc[normal].mean() / base.interval_s),
+        "hot_pixels": int(hot.sum()),
+        "hot_mu_median": float(np.median(hot_mu[hot])) if hot.any() else 0.0,
+        "hot_sigma_median": float(np.median(hot_sigma[hot])) if hot.any() else 0.0,
+        "hot_min_isis": int(hot_n_isi[hot].min()) if hot.any() else 0,
+        "prnu_std": float(gain[normal].std()),
+        "prnu_levels_used": [bool(u) for u in use],
+        "flat_mean_spike_rate": [float(r[normal].mean()) for r in rates_levels],
+    }
+    report = CalibrationReport(n_dark=len(dark), n_flat=len(flat), dark_intervals=n_int, flat_intervals=flat_ints,
+                               hot_threshold=hot_threshold, numbers=numbers, dark_fraction=p_dark,
+                               flat_levels_e=[float(x) for x in L])
+    return prof, report
+
+
+def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) -> list[Path]:
+    """Write ``<stem>.json`` (numbers) and ``<stem>.png`` (dark-rate histogram, hot-pixel map, PRNU map, PRNU spread)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .fileio import atomic_path
+    out_stem = Path(out_stem)
+    jpath = out_stem.with_suffix(".json")
+    write_json_atomic(jpath, {"profile": profile.name, **report.to_dict(), "provenance": provenance()})
+    fig, ax = plt.subplots(2, 2, figsize=(11, 8))
+    hz = profile.dark_rate / profile.interval_s
+    normal = ~profile.hot_mask
+    vals = hz[normal]
+    bins = np.geomspace(max(vals[vals > 0].min() if (vals > 0).any() else 1e-1, 1e-1), max(vals.max(), 1.0), 60)
+    ax[0, 0].hist(vals[vals > 0], bins=bins, color="0.3")
+    ax[0, 0].set_xscale("log")
+    ax[0, 0].set_xlabel("dark rate mu_DC / T_r [Hz]")
+    ax[0, 0].set_ylabel("pixels")
+    ax[0, 0].set_title(f"dark current (mean {vals.mean():.1f} Hz)")
+    ax[0, 1].imshow(profile.hot_mask, cmap="gray_r", interpolation="nearest")
+    ax[0, 1].set_title(f"hot pixels ({int(profile.hot_mask.sum())})")
+    im = ax[1, 0].imshow(profile.prnu_gain, cmap="coolwarm", vmin=0.8, vmax=1.2)
+    ax[1, 0].set_title("PRNU gain")
+    fig.colorbar(im, ax=ax[1, 0])
+    g = profile.prnu_gain[normal]
+    ax[1, 1].hist(g, bins=60, color="0.3")
+    ax[1, 1].set_xlabel("PRNU gain")
+    ax[1, 1].set_title(f"PRNU spread: std {g.std():.4f}")
+    fig.suptitle(f"calibration of {profile.name}: {report.n_dark} dark, {report.n_flat} flat recordings")
+    fig.tight_layout()
+    ppath = out_stem.with_suffix(".png")
+    with atomic_path(ppath) as tmp:
+        fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    return [jpath, ppath]
