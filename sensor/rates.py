@@ -53,11 +53,17 @@ def hat_interval_weights(knots_s, bounds_s, interval_s: float = INTERVAL_S) -> n
     the result does not depend on knots outside ``knots_s`` as long as every
     bound lies within ``[knots[0], knots[-1]]``.
     """
-    t = np.asarray(knots_s, dtype=np.float64)
     b = np.asarray(bounds_s, dtype=np.float64)
+    return hat_pair_weights(knots_s, b[:-1], b[1:], interval_s)
+
+
+def hat_pair_weights(knots_s, lo_s, hi_s, interval_s: float = INTERVAL_S) -> np.ndarray:
+    """Like :func:`hat_interval_weights` for arbitrary intervals ``[lo_s[i], hi_s[i]]`` (M,) -> W (M, K)."""
+    t = np.asarray(knots_s, dtype=np.float64)
+    a_ = np.asarray(lo_s, dtype=np.float64)
+    b_ = np.asarray(hi_s, dtype=np.float64)
     if t.ndim != 1 or t.size < 2:
         raise InputError("need at least two keyframe times to interpolate", field="t_s")
-    a_, b_ = b[:-1], b[1:]
     W = np.zeros((a_.size, t.size), dtype=np.float64)
     for j in range(t.size):
         if j > 0:
@@ -104,11 +110,126 @@ def interval_rates(rate_e, t_s=None, n_intervals: int | None = None, interval_s:
     return (W @ rate_e[lo:hi + 1].reshape(K, H * Wd)).reshape(n, H, Wd)
 
 
+class Segments:
+    """The rate of a block of intervals as affine pieces (the input of event-driven models).
+
+    Intervals ``m0 + start[i] .. m0 + start[i] + length[i] - 1`` form piece ``i``; within
+    it, for every pixel p, the exact expected count of interval ``m0 + start[i] + q`` is
+    affine in ``q``::
+
+        lambda_first = sum_r w[i, 1, r] * rates[lo[i] + r, p]
+        lambda(q)    = lambda_first + q * sum_r w[i, 2, r] * rates[lo[i] + r, p]
+        sum over the piece = sum_r w[i, 0, r] * rates[lo[i] + r, p]
+
+    for r < nk[i]. With piecewise-linear keyframes every run of whole intervals between
+    two keyframes is one piece (the interval average of a linear rate is its value at
+    the interval centre, affine in m); an interval containing a keyframe time is a piece
+    of its own. With one rate per interval every interval is a piece. The weights come
+    from the same hat-function integrals as :func:`interval_rates`, so both describe the
+    same lambda_m (up to float round-off: lambda here is evaluated in float64).
+    """
+
+    __slots__ = ("rates", "start", "length", "lo", "nk", "w", "m0", "m1")
+
+    def __init__(self, rates, start, length, lo, nk, w, m0, m1):
+        self.rates = np.ascontiguousarray(rates, dtype=np.float32)  # (K, P)
+        self.start = np.ascontiguousarray(start, dtype=np.int64)
+        self.length = np.ascontiguousarray(length, dtype=np.int64)
+        self.lo = np.ascontiguousarray(lo, dtype=np.int64)
+        self.nk = np.ascontiguousarray(nk, dtype=np.int64)
+        self.w = np.ascontiguousarray(w, dtype=np.float64)  # (n_pieces, 3, nk_max)
+        self.m0, self.m1 = int(m0), int(m1)
+
+    @property
+    def n_pieces(self) -> int:
+        return int(self.start.size)
+
+    def dense(self) -> np.ndarray:
+        """lambda (m1 - m0, P) float64, evaluated from the pieces (for tests)."""
+        out = np.zeros((self.m1 - self.m0, self.rates.shape[1]))
+        for i in range(self.n_pieces):
+            r = self.rates[self.lo[i]:self.lo[i] + self.nk[i]].astype(np.float64)
+            first = self.w[i, 1, :self.nk[i]] @ r
+            slope = self.w[i, 2, :self.nk[i]] @ r
+            q = np.arange(self.length[i])[:, None]
+            out[self.start[i]:self.start[i] + self.length[i]] = first + q * slope
+        return out
+
+    @classmethod
+    def per_interval(cls, lam, m0: int = 0) -> "Segments":
+        """One piece per interval for lambda given per interval, (B, H, W) or (B, P)."""
+        lam = np.asarray(lam, dtype=np.float32)
+        B = lam.shape[0]
+        w = np.zeros((B, 3, 1))
+        w[:, 0, 0] = 1.0
+        w[:, 1, 0] = 1.0
+        idx = np.arange(B)
+        return cls(lam.reshape(B, -1), idx, np.ones(B, np.int64), idx, np.ones(B, np.int64), w, m0, m0 + B)
+
+    @classmethod
+    def from_knots(cls, knots_s, rates, t0_s: float, m0: int, m1: int, interval_s: float = INTERVAL_S) -> "Segments":
+        """Pieces of intervals [m0, m1) for keyframes (times ``knots_s`` [s], rates (K, ...)) starting at ``t0_s``."""
+        t = np.asarray(knots_s, dtype=np.float64)
+        rates = np.asarray(rates, dtype=np.float32)
+        rates = rates.reshape(rates.shape[0], -1)
+        n = m1 - m0
+        bounds = interval_bounds_s(t0_s, m0, m1, interval_s)
+        a_, b_ = bounds[:-1], bounds[1:]
+        tol = _N_INTERVALS_EPS * float(interval_s)
+        # knot segment j holding the start of each interval; interior if the interval ends before knot j+1
+        j = np.clip(np.searchsorted(t, a_ + tol, "right") - 1, 0, t.size - 2)
+        interior = (t[j] <= a_ + tol) & (b_ <= t[j + 1] + tol)
+        # runs of interior intervals in the same knot segment are one piece; other intervals one piece each
+        key = np.where(interior, j, -1 - np.arange(n))
+        new = np.ones(n, bool)
+        new[1:] = key[1:] != key[:-1]
+        start = np.flatnonzero(new)
+        length = np.diff(np.append(start, n))
+        last = start + length - 1
+        npc = start.size
+        lo = np.zeros(npc, np.int64)
+        nk = np.full(npc, 2, np.int64)
+        first_w = np.zeros((npc, 2))
+        last_w = np.zeros((npc, 2))
+        pin = interior[start]
+        # interior pieces: the interval average is the linear rate at the interval centre
+        ji = j[start[pin]]
+        lo[pin] = ji
+        span = t[ji + 1] - t[ji]
+        for wmat, idx in ((first_w, start[pin]), (last_w, last[pin])):
+            x = np.clip((0.5 * (a_[idx] + b_[idx]) - t[ji]) / span, 0.0, 1.0)
+            wmat[pin, 0], wmat[pin, 1] = 1.0 - x, x
+        nkmax = 2
+        extra = {}
+        if np.any(~pin):  # intervals that contain a keyframe time: full hat-function integral
+            sel = np.flatnonzero(~pin)
+            ia = start[sel]
+            jl = np.clip(np.searchsorted(t, a_[ia], "right") - 1, 0, t.size - 1)
+            jh = np.clip(np.searchsorted(t, b_[ia], "left"), 0, t.size - 1)
+            jh = np.maximum(jh, jl + 1)
+            W = hat_pair_weights(t, a_[ia], b_[ia], interval_s)
+            for s, i0, i1, row in zip(sel, jl, jh, W):
+                lo[s], nk[s] = i0, i1 - i0 + 1
+                extra[s] = row[i0:i1 + 1]
+            nkmax = max(nkmax, int(nk.max()))
+        w = np.zeros((npc, 3, nkmax))
+        w[:, 1, :2] = first_w
+        slope = np.where(length[:, None] > 1, (last_w - first_w) / np.maximum(length - 1, 1)[:, None], 0.0)
+        w[:, 2, :2] = slope
+        w[:, 0, :2] = 0.5 * length[:, None] * (first_w + last_w)
+        for s, row in extra.items():
+            w[s, :, :] = 0.0
+            w[s, 0, :row.size] = row
+            w[s, 1, :row.size] = row
+        return cls(rates, start, length, lo, nk, w, m0, m1)
+
+
 class RateSchedule:
     """Streaming buffer of keyframes that hands out lambda for whole blocks of intervals.
 
     Feed keyframes in time order with :meth:`add`; ask for the lambda of
-    intervals ``[m0, m1)`` with :meth:`rates` once :meth:`covered` says the
+    intervals ``[m0, m1)`` with :meth:`rates` (dense) or :meth:`segments`
+    (affine pieces, for event-driven models) once :meth:`covered` says the
     keyframes reach ``m1``. The result for a block depends only on the
     keyframes around it, never on how the input was chunked, which keeps
     seeded simulations bitwise reproducible across chunk sizes.
@@ -118,7 +239,9 @@ class RateSchedule:
         self.interval_s = float(interval_s)
         self.per_interval = per_interval
         self._t: np.ndarray = np.zeros(0, np.float64)
-        self._r: np.ndarray | None = None
+        self._chunks: list[np.ndarray] = []  # buffered rows (keyframes, or intervals in per_interval mode)
+        self._n = 0  # number of buffered rows
+        self._shape = None
         self._offset = 0  # per_interval mode: index of the first buffered interval
         self.t0_s: float | None = None
 
@@ -126,9 +249,11 @@ class RateSchedule:
         rate_e = np.asarray(rate_e, dtype=np.float32)
         if rate_e.ndim != 3:
             raise InputError(f"rate_e must be (K, H, W); got shape {rate_e.shape}", field="rate_e")
-        if not np.all(np.isfinite(rate_e)) or np.any(rate_e < 0):
-            raise InputError("rate_e must be finite and >= 0 (expected photoelectrons per interval)",
-                             field="rate_e")
+        if rate_e.size:
+            lo, hi = rate_e.min(), rate_e.max()  # NaN propagates through min/max
+            if not (np.isfinite(lo) and np.isfinite(hi)) or lo < 0:
+                raise InputError("rate_e must be finite and >= 0 (expected photoelectrons per interval)",
+                                 field="rate_e")
         if self.per_interval:
             if t_s is not None:
                 raise InputError("this stream takes one rate per interval (t_s=None)", field="t_s")
@@ -144,46 +269,98 @@ class RateSchedule:
             if self.t0_s is None and t_new.size:
                 self.t0_s = float(t_new[0])
             self._t = allt
-        if self._r is not None and self._r.shape[1:] != rate_e.shape[1:]:
-            raise InputError(f"frame shape changed from {self._r.shape[1:]} to {rate_e.shape[1:]}", field="rate_e")
-        self._r = rate_e.copy() if self._r is None else np.concatenate([self._r, rate_e])
+        if self._shape is not None and self._shape != rate_e.shape[1:]:
+            raise InputError(f"frame shape changed from {self._shape} to {rate_e.shape[1:]}", field="rate_e")
+        self._shape = rate_e.shape[1:]
+        if rate_e.shape[0]:
+            self._chunks.append(rate_e.copy())
+            self._n += rate_e.shape[0]
+
+    def _gather(self, lo: int, hi: int) -> np.ndarray:
+        """Buffered rows [lo, hi) as one array (a view when they lie in one chunk)."""
+        parts, pos = [], 0
+        for c in self._chunks:
+            a, b = max(lo - pos, 0), min(hi - pos, c.shape[0])
+            if a < b:
+                parts.append(c[a:b])
+            pos += c.shape[0]
+            if pos >= hi:
+                break
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _drop(self, n: int) -> None:
+        """Forget the first ``n`` buffered rows."""
+        while n > 0 and self._chunks:
+            c = self._chunks[0]
+            if c.shape[0] <= n:
+                n -= c.shape[0]
+                self._n -= c.shape[0]
+                self._chunks.pop(0)
+            else:
+                self._chunks[0] = c[n:]
+                self._n -= n
+                n = 0
 
     @property
     def frame_shape(self):
-        return None if self._r is None else self._r.shape[1:]
+        return self._shape
 
     def covered(self) -> int:
         """Number of intervals (from interval 0) that the buffered keyframes fully determine."""
-        if self._r is None:
+        if self._shape is None:
             return 0
         if self.per_interval:
-            return self._offset + self._r.shape[0]
+            return self._offset + self._n
         if self._t.size < 2:
             return 0
         return n_intervals_spanned(self.t0_s, self._t[-1], self.interval_s)
+
+    def _knot_range(self, m0: int, m1: int):
+        bounds = interval_bounds_s(self.t0_s, m0, m1, self.interval_s)
+        t = self._t
+        lo = max(int(np.searchsorted(t, bounds[0], "right")) - 1, 0)
+        hi = min(int(np.searchsorted(t, bounds[-1], "left")), t.size - 1)
+        hi = max(hi, lo + 1)
+        # keep the last knot at or before the end of this block: the next block starts there
+        keep = max(int(np.searchsorted(t, bounds[-1], "right")) - 1, 0)
+        return bounds, lo, hi, keep
+
+    def _forget_knots(self, keep: int) -> None:
+        self._t = self._t[keep:]
+        self._drop(keep)
 
     def rates(self, m0: int, m1: int) -> np.ndarray:
         """lambda for intervals [m0, m1), float32 (m1-m0, H, W); drops keyframes no longer needed."""
         if m1 > self.covered():
             raise InputError(f"intervals up to {m1} requested but keyframes cover only {self.covered()}")
         if self.per_interval:
-            out = self._r[m0 - self._offset:m1 - self._offset]
-            self._r = self._r[m1 - self._offset:]
+            out = self._gather(m0 - self._offset, m1 - self._offset)
+            self._drop(m1 - self._offset)
             self._offset = m1
             return out
-        bounds = interval_bounds_s(self.t0_s, m0, m1, self.interval_s)
+        bounds, lo, hi, keep = self._knot_range(m0, m1)
         t = self._t
-        lo = max(int(np.searchsorted(t, bounds[0], "right")) - 1, 0)
-        hi = min(int(np.searchsorted(t, bounds[-1], "left")), t.size - 1)
-        hi = max(hi, lo + 1)
         W = hat_interval_weights(t[lo:hi + 1], bounds, self.interval_s).astype(np.float32)
-        K, H, Wd = self._r[lo:hi + 1].shape
-        out = (W @ self._r[lo:hi + 1].reshape(K, H * Wd)).reshape(m1 - m0, H, Wd)
-        # keep the last knot at or before the end of this block: the next block starts there
-        keep = max(int(np.searchsorted(t, bounds[-1], "right")) - 1, 0)
-        self._t, self._r = t[keep:], self._r[keep:]
+        r = self._gather(lo, hi + 1)
+        K, H, Wd = r.shape
+        out = (W @ r.reshape(K, H * Wd)).reshape(m1 - m0, H, Wd)
+        self._forget_knots(keep)
         return out
 
+    def segments(self, m0: int, m1: int) -> Segments:
+        """The rate of intervals [m0, m1) as affine :class:`Segments`; drops keyframes no longer needed."""
+        if m1 > self.covered():
+            raise InputError(f"intervals up to {m1} requested but keyframes cover only {self.covered()}")
+        if self.per_interval:
+            seg = Segments.per_interval(self._gather(m0 - self._offset, m1 - self._offset), m0)
+            self._drop(m1 - self._offset)
+            self._offset = m1
+            return seg
+        bounds, lo, hi, keep = self._knot_range(m0, m1)
+        seg = Segments.from_knots(self._t[lo:hi + 1], self._gather(lo, hi + 1), self.t0_s, m0, m1, self.interval_s)
+        self._forget_knots(keep)
+        return seg
+
     def knots(self):
-        """Buffered keyframe times [s] and rates (for implementations that integrate per segment)."""
-        return self._t, self._r
+        """Buffered keyframe times [s] and rates (K, H, W)."""
+        return self._t, (self._gather(0, self._n) if self._n else None)

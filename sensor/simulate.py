@@ -12,6 +12,19 @@ from .profile import SensorProfile
 from .rates import RateSchedule
 
 
+def pack_frames(spikes) -> np.ndarray:
+    """bool (n, H, W) -> uint8 (n, ceil(H*W/8)): pixel p = r*W + c in byte p//8, bit p%8 (LSB first)."""
+    s = np.asarray(spikes, bool)
+    return np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little")
+
+
+def unpack_frames(bits, shape) -> np.ndarray:
+    """Inverse of :func:`pack_frames`: uint8 (n, ceil(H*W/8)) -> bool (n, H, W)."""
+    h, w = shape
+    bits = np.asarray(bits, np.uint8)
+    return np.unpackbits(bits, axis=1, count=h * w, bitorder="little").view(bool).reshape(bits.shape[0], h, w)
+
+
 class SpikeSimulator:
     """Streaming spike simulation with state carried across chunks.
 
@@ -62,21 +75,36 @@ class SpikeSimulator:
                              f"'{self.profile.name}'; got {rate_e.shape}", field="rate_e")
         return rate_e
 
-    def _run(self, m0: int, m1: int) -> np.ndarray:
-        lam = self.schedule.rates(m0, m1)
+    def _run(self, m0: int, m1: int, packed: bool = False) -> np.ndarray:
         rng = block_generator(self.seed, self.model_name, m0 // self.block, self.implementation)
-        return self.model.run_block(lam, self.state, rng)
+        if getattr(self.model, "uses_segments", False):
+            bits = self.model.run_segments(self.schedule.segments(m0, m1), self.state, rng)
+            return bits if packed else unpack_frames(bits, self.profile.shape)
+        out = self.model.run_block(self.schedule.rates(m0, m1), self.state, rng)
+        return pack_frames(out) if packed else out
 
-    def iter_feed(self, rate_e, t_s=None) -> Iterator[np.ndarray]:
-        """Add rate data and yield spike blocks bool (B, H, W) as whole blocks become available."""
+    def _iter(self, rate_e, t_s, packed: bool) -> Iterator[np.ndarray]:
         if self.finished:
             raise InputError("this stream is finished; start a new SpikeSimulator")
         rate_e = self._check_shape(rate_e)
         self.schedule.add(rate_e, None if t_s is None else np.atleast_1d(np.asarray(t_s, np.float64)))
         while self.schedule.covered() >= self.n_done + self.block:
-            out = self._run(self.n_done, self.n_done + self.block)
+            out = self._run(self.n_done, self.n_done + self.block, packed)
             self.n_done += self.block
             yield out
+
+    def iter_feed(self, rate_e, t_s=None) -> Iterator[np.ndarray]:
+        """Add rate data and yield spike blocks bool (B, H, W) as whole blocks become available."""
+        return self._iter(rate_e, t_s, packed=False)
+
+    def iter_feed_packed(self, rate_e, t_s=None) -> Iterator[np.ndarray]:
+        """Like :meth:`iter_feed`, yielding bit-packed blocks uint8 (B, ceil(H*W/8)).
+
+        Frame layout (:func:`pack_frames`): image orientation, pixel ``p = r*W + c``
+        in byte ``p // 8``, bit ``p % 8`` (``np.packbits(..., bitorder='little')``).
+        The fast implementations produce this directly (8x less memory than bool).
+        """
+        return self._iter(rate_e, t_s, packed=True)
 
     def feed(self, rate_e, t_s=None) -> np.ndarray:
         """Add rate data; return the spikes bool (n, H, W) of the intervals completed by it."""
@@ -85,21 +113,32 @@ class SpikeSimulator:
 
     def finish(self) -> np.ndarray:
         """Simulate the last, partial block; return its spikes (n, H, W). The stream then ends."""
+        bits = self.finish_packed()
+        return unpack_frames(bits, self.profile.shape)
+
+    def finish_packed(self) -> np.ndarray:
+        """Like :meth:`finish`, bit-packed: uint8 (n, ceil(H*W/8))."""
         if self.finished:
-            return np.zeros((0,) + self.profile.shape, bool)
+            return np.zeros((0, self.n_bytes), np.uint8)
         self.finished = True
         end = self.schedule.covered()
         if end > self.n_done:
-            out = self._run(self.n_done, end)
+            out = self._run(self.n_done, end, packed=True)
             self.n_done = end
             return out
-        return np.zeros((0,) + self.profile.shape, bool)
+        return np.zeros((0, self.n_bytes), np.uint8)
+
+    @property
+    def n_bytes(self) -> int:
+        """Bytes per packed frame, ceil(H*W/8)."""
+        return (self.profile.height * self.profile.width + 7) // 8
 
     def describe(self) -> dict:
         """Metadata of this stream, stored with the spikes."""
         return {"model": self.model_name, "implementation": self.implementation, "seed": self.seed,
                 "block_intervals": self.block, "profile_id": self.profile.name,
-                "interval_s": self.profile.interval_s, "threshold_e": self.profile.threshold_e}
+                "interval_s": self.profile.interval_s, "threshold_e": self.profile.threshold_e,
+                "packed_bit_order": "little"}
 
 
 def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *, implementation: str = "fast",

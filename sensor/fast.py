@@ -1,0 +1,440 @@
+"""Event-driven ("fast") implementations of the spike models: cost grows with spikes, not intervals.
+
+Why this is the same model as the step simulator (:class:`sensor.models.ELSSimStep`)
+-----------------------------------------------------------------------------------
+For a pixel that is not hot, one interval of Algorithm 2 adds ``g * n_m`` with
+``n_m ~ Poisson(lambda'_m)`` (``lambda'_m = lambda_m (1 - f)`` in the interval
+after a spike, Eq. 6), plus a full threshold when a dark event occurs
+(probability ``p = 1 - exp(-mu_DC)``, Eq. 1), then fires and resets to zero.
+Hence, since the last reset:
+
+* the light fires in the first interval in which the photoelectron count reaches
+  ``k = ceil(theta / g)`` (:func:`sensor.effects.count_threshold`). Counts of
+  disjoint intervals are independent Poisson variables, so the count is a unit
+  Poisson process in the rescaled time ``Lambda = sum of lambda'_m``, and the
+  count reaches ``k`` exactly when ``Lambda`` passes the k-th arrival time
+  ``Gamma ~ Gamma(k, 1)`` (time rescaling). One Gamma variate per spike
+  replaces one Poisson variate per interval;
+* dark events are an independent Bernoulli(p) process over intervals, so the
+  next one comes after a Geometric(p) gap (memoryless, so a pending dark event
+  survives a light spike unchanged);
+* the spike comes at the earlier of the two; either resets the integrator
+  (excess discarded), so a new Gamma is drawn and the next interval is the
+  refractory one.
+
+This is exact in distribution (not an approximation); only the random numbers
+differ from the step simulator, so the two agree statistically, never bitwise.
+Hot pixels (Eq. 4, Gaussian charge that may be negative, clipped at zero) have
+no such shortcut; the few of them (0.1 % in ``vidar-default``) take the step
+path inside the same kernel, in exactly the order of Algorithm 2.
+
+``ideal`` is deterministic: the fast path skips whole pieces while the charge
+stays below threshold and steps otherwise; with one rate per interval it is
+bitwise identical to the reference; with keyframes lambda_m is evaluated in
+float64 from the pieces instead of a float32 matrix product, so a spike can move
+by one interval where the charge meets the threshold within float round-off.
+``isi`` draws the same Gamma inter-spike intervals as the reference, skipping
+the intervals in between.
+
+Input: :class:`sensor.rates.Segments` (affine pieces of lambda between
+keyframes), so the input cost is per keyframe, not per interval. Output: the
+spike frames bit-packed, ``uint8 (B, ceil(H*W/8))``, pixel ``p = r*W + c`` in
+byte ``p // 8``, bit ``p % 8`` (little bit order, image orientation).
+
+Randomness and parallelism: the pixels are cut into fixed tiles of
+:data:`TILE_PIXELS` pixels; block ``b`` of a stream draws from
+``block_generator(seed, model, b, 'fast')``, whose ``spawn(n_tiles)`` children
+give each tile its own generator. Tiles run on a thread pool (numba releases the
+GIL); the result depends on neither the thread count nor the chunking.
+
+Needs ``numba``. Without it, ``implementation='fast'`` falls back to the
+reference step simulator with a warning.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from .effects import count_threshold, dark_event_probability
+from .models import SpikeModel, register_fast
+from .profile import SensorProfile
+from .rates import Segments
+from .simulate import pack_frames, unpack_frames  # noqa: F401  (re-exported)
+
+try:  # pragma: no cover - exercised by the environment, not by a test toggle
+    import numba
+    from numba import njit
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover
+    numba = None
+    HAVE_NUMBA = False
+
+#: pixels per tile (a multiple of 8, so tiles own whole bytes of the packed output)
+TILE_PIXELS = 8192
+#: intervals per block of the fast implementations (part of their reproducibility contract)
+FAST_BLOCK_INTERVALS = 1000
+#: "never" for the next dark event (int64)
+_NEVER = np.int64(1) << np.int64(62)
+
+
+def n_threads() -> int:
+    """Worker threads for the tiles: ``RENDER2SPIKE_THREADS`` or the CPUs this process may use."""
+    env = os.environ.get("RENDER2SPIKE_THREADS")
+    if env:
+        return max(1, int(env))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover
+        return max(1, os.cpu_count() or 1)
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_N = 0
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL, _POOL_N
+    n = n_threads()
+    if _POOL is None or _POOL_N != n:
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="render2spike-fast")
+        _POOL_N = n
+    return _POOL
+
+
+# ----------------------------------------------------------------------------------------------- kernels
+if HAVE_NUMBA:
+    _jit = njit(nogil=True, cache=True, error_model="numpy")
+    _jit_inline = njit(nogil=True, cache=True, inline="always", error_model="numpy")
+
+    @_jit_inline
+    def _gamma(rng, b, c):
+        """Gamma(k, 1) for k >= 1 (b = k - 1/3, c = 1/sqrt(9b)): Marsaglia-Tsang, as numpy's standard_gamma."""
+        while True:
+            x = rng.standard_normal()
+            v = 1.0 + c * x
+            while v <= 0.0:
+                x = rng.standard_normal()
+                v = 1.0 + c * x
+            v = v * v * v
+            u = rng.random()
+            if u < 1.0 - 0.0331 * (x * x) * (x * x):
+                return b * v
+            if math.log(u) < 0.5 * x * x + b * (1.0 - v + math.log(v)):
+                return b * v
+
+    @_jit_inline
+    def _geometric(rng, inv):
+        """Geometric(p) on {1, 2, ...} by inversion, ``inv = -1 / log(1 - p)`` (as numpy's for small p)."""
+        g = math.ceil(rng.standard_exponential() * inv)
+        if g < 1.0:
+            return np.int64(1)
+        if g > 4.0e18:
+            return _NEVER
+        return np.int64(g)
+
+    @_jit_inline
+    def _poisson(rng, lam):
+        """Poisson(lam): inversion for lam < 30 (one uniform), numpy's PTRS otherwise."""
+        if lam <= 0.0:
+            return 0.0
+        if lam < 30.0:
+            u = rng.random()
+            p = math.exp(-lam)
+            f = p
+            x = 0.0
+            while u > f:
+                x += 1.0
+                p *= lam / x
+                if p == 0.0:
+                    break
+                f += p
+            return x
+        return float(rng.poisson(lam))
+
+    @_jit_inline
+    def _piece_coeffs(R, w, i, lo, nk, p):
+        s = 0.0
+        l0 = 0.0
+        sl = 0.0
+        for r in range(nk):
+            x = np.float64(R[lo + r, p])
+            s += w[i, 0, r] * x
+            l0 += w[i, 1, r] * x
+            sl += w[i, 2, r] * x
+        return s, l0, sl
+
+    @_jit
+    def _elssim_tile(rng, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
+                     gb, gc, omf, dinv, has_dark, gain, hot_mu, hot_sigma, theta,
+                     rem, dark_next, refr, v, out):
+        # ---- first block: draw the initial state
+        for p in range(p0, p1):
+            if rem[p] != rem[p]:  # NaN: not drawn yet
+                rem[p] = _gamma(rng, gb[p], gc[p])
+                dark_next[p] = m0 - 1 + _geometric(rng, dinv[p]) if has_dark[p] else _NEVER
+        for h in hot_idx:
+            rem[h] = np.inf  # hot pixels never take the event path
+        npc = start.size
+        for i in range(npc):
+            a = m0 + start[i]
+            n = length[i]
+            end = a + n
+            lo = lo_[i]
+            nk = nk_[i]
+            two = nk == 2
+            w00 = w[i, 0, 0]
+            w01 = w[i, 0, 1] if nk > 1 else 0.0
+            for p in range(p0, p1):
+                if two:
+                    s = w00 * np.float64(R[lo, p]) + w01 * np.float64(R[lo + 1, p])
+                else:
+                    s = 0.0
+                    for r in range(nk):
+                        s += w[i, 0, r] * np.float64(R[lo + r, p])
+                rp = rem[p]
+                if refr[p] == 0 and dark_next[p] >= end and s < rp:
+                    rem[p] = rp - s  # no spike in this piece
+                    continue
+                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                q = 0
+                while q < n:
+                    m = a + q
+                    if refr[p] == 0 and dark_next[p] >= end:
+                        # sum of the rest of the piece; skip it when it cannot reach the target
+                        rest = (n - q) * l0 + sl * 0.5 * (q + n - 1) * (n - q)
+                        if rest < rem[p]:
+                            rem[p] -= rest
+                            break
+                    lam = l0 + sl * q
+                    if refr[p]:
+                        lam *= omf[p]
+                        refr[p] = 0
+                    r_ = rem[p] - lam
+                    dk = dark_next[p] == m
+                    if r_ <= 0.0 or dk:
+                        out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                        refr[p] = 1
+                        rem[p] = _gamma(rng, gb[p], gc[p])
+                        if dk:
+                            dark_next[p] = m + _geometric(rng, dinv[p])
+                    else:
+                        rem[p] = r_
+                    q += 1
+            # ---- hot pixels: the step simulator, in the order of Algorithm 2
+            for h in hot_idx:
+                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, h)
+                for q in range(n):
+                    m = a + q
+                    lam = l0 + sl * q
+                    if refr[h]:
+                        lam *= omf[h]
+                    vv = v[h] + gain[h] * _poisson(rng, lam)
+                    if dark_next[h] == m:
+                        vv += theta
+                        dark_next[h] = m + _geometric(rng, dinv[h])
+                    vv += (hot_mu[h] + hot_sigma[h] * rng.standard_normal()) * theta
+                    if vv < 0.0:
+                        vv = 0.0
+                    if vv >= theta:
+                        out[m - m0, h >> 3] |= np.uint8(1 << (h & 7))
+                        vv = 0.0
+                        refr[h] = 1
+                    else:
+                        refr[h] = 0
+                    v[h] = vv
+
+    @_jit
+    def _ideal_tile(R, start, length, lo_, nk_, w, m0, p0, p1, theta, v, out):
+        for i in range(start.size):
+            a = m0 + start[i]
+            n = length[i]
+            lo = lo_[i]
+            nk = nk_[i]
+            for p in range(p0, p1):
+                s = 0.0
+                for r in range(nk):
+                    s += w[i, 0, r] * np.float64(R[lo + r, p])
+                vp = v[p]
+                if vp + s < theta:
+                    v[p] = vp + s
+                    continue
+                if n == 1:  # one interval: the reference's very operation
+                    vp += s
+                    if vp >= theta:
+                        out[a - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                        vp = 0.0
+                    v[p] = vp
+                    continue
+                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                for q in range(n):
+                    vp += l0 + sl * q
+                    if vp >= theta:
+                        out[a + q - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                        vp = 0.0
+                v[p] = vp
+
+    @_jit
+    def _isi_tile(rng, R, start, length, lo_, nk_, w, m0, p0, p1, gb, gc, gain, dark_e, tau, out):
+        for i in range(start.size):
+            a = m0 + start[i]
+            n = length[i]
+            end = a + n
+            lo = lo_[i]
+            nk = nk_[i]
+            for p in range(p0, p1):
+                if tau[p] >= end:  # False for NaN (not drawn)
+                    continue
+                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                if tau[p] != tau[p] and dark_e[p] <= 0.0 and l0 <= 0.0 and l0 + sl * (n - 1) <= 0.0:
+                    continue  # no charge anywhere in this piece
+                for q in range(n):
+                    m = a + q
+                    qq = gain[p] * (l0 + sl * q) + dark_e[p]
+                    t = tau[p]
+                    if t != t:
+                        if qq > 0.0:
+                            t = m + _gamma(rng, gb[p], gc[p]) / qq
+                        else:
+                            continue
+                    if t < m + 1:
+                        out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                        while t < m + 1:
+                            if qq > 0.0:
+                                t = t + _gamma(rng, gb[p], gc[p]) / qq
+                            else:
+                                t = np.nan
+                                break
+                    tau[p] = t
+                    if t >= end:
+                        break
+
+
+# ------------------------------------------------------------------------------------------ model classes
+class _FastModel(SpikeModel):
+    """Common machinery: tiles, thread pool, packed output, segment input."""
+
+    implementation = "fast"
+    block_intervals = FAST_BLOCK_INTERVALS
+    #: the simulator hands this model :class:`Segments` and takes packed frames back
+    uses_segments = True
+    uses_rng = True
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        self.n_pixels = profile.height * profile.width
+        self.n_bytes = (self.n_pixels + 7) // 8
+        self.tiles = [(p0, min(p0 + TILE_PIXELS, self.n_pixels)) for p0 in range(0, self.n_pixels, TILE_PIXELS)]
+
+    # the dense interface of SpikeModel, for callers that hand lambda per interval
+    def run_block(self, lam, state, rng):
+        lam = np.asarray(lam, np.float32)
+        bits = self.run_segments(Segments.per_interval(lam, state["m"]), state, rng)
+        return unpack_frames(bits, lam.shape[1:])
+
+    def run_segments(self, seg: Segments, state: dict, rng) -> np.ndarray:
+        """Packed spikes uint8 (m1 - m0, ceil(H*W/8)) for the block ``seg``; updates ``state``."""
+        if seg.m0 != state["m"]:
+            raise ValueError(f"block starts at interval {seg.m0} but the state is at {state['m']}")
+        if seg.rates.shape[1] != self.n_pixels:
+            raise ValueError(f"segments have {seg.rates.shape[1]} pixels, the profile {self.n_pixels}")
+        out = np.zeros((seg.m1 - seg.m0, self.n_bytes), np.uint8)
+        rngs = rng.spawn(len(self.tiles)) if self.uses_rng else [None] * len(self.tiles)
+        jobs = [(t, g) for t, g in zip(self.tiles, rngs)]
+        if len(jobs) == 1 or n_threads() == 1:
+            for (p0, p1), g in jobs:
+                self._tile(seg, state, g, p0, p1, out)
+        else:
+            futs = [_pool().submit(self._tile, seg, state, g, p0, p1, out) for (p0, p1), g in jobs]
+            for f in futs:
+                f.result()
+        state["m"] = seg.m1
+        return out
+
+    def _tile(self, seg, state, rng, p0, p1, out):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class ELSSimFast(_FastModel):
+    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see module doc)."""
+
+    name = "elssim"
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        p = profile
+        k = count_threshold(p.threshold_e, p.prnu_gain).reshape(-1)
+        self.gb = k - 1.0 / 3.0
+        self.gc = 1.0 / np.sqrt(9.0 * self.gb)
+        self.omf = (1.0 - p.refractory_fraction.astype(np.float64)).reshape(-1)
+        pd = dark_event_probability(p.dark_rate).reshape(-1)
+        self.has_dark = (pd > 0).astype(np.uint8)
+        with np.errstate(divide="ignore"):
+            self.dinv = np.where(pd > 0, -1.0 / np.log1p(-np.minimum(pd, 1.0)), 0.0)
+        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
+        self.hot_mu = p.hot_mu.astype(np.float64).reshape(-1)
+        self.hot_sigma = p.hot_sigma.astype(np.float64).reshape(-1)
+        hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
+        self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
+        self.theta = float(p.threshold_e)
+
+    def init_state(self) -> dict:
+        n = self.n_pixels
+        return {"m": 0, "rem": np.full(n, np.nan), "dark_next": np.zeros(n, np.int64),
+                "refr": np.zeros(n, np.uint8), "v": np.zeros(n, np.float64)}
+
+    def _tile(self, seg, state, rng, p0, p1, out):
+        ti = p0 // TILE_PIXELS
+        _elssim_tile(rng, seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
+                     self.hot_tiles[ti], self.gb, self.gc, self.omf, self.dinv, self.has_dark, self.gain,
+                     self.hot_mu, self.hot_sigma, self.theta,
+                     state["rem"], state["dark_next"], state["refr"], state["v"], out)
+
+
+class IdealFast(_FastModel):
+    """``ideal``, event-driven: whole pieces are added at once while the charge stays below threshold."""
+
+    name = "ideal"
+    uses_rng = False
+
+    def init_state(self) -> dict:
+        return {"m": 0, "v": np.zeros(self.n_pixels, np.float64)}
+
+    def _tile(self, seg, state, rng, p0, p1, out):
+        _ideal_tile(seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
+                    float(self.profile.threshold_e), state["v"], out)
+
+
+class ISIFast(_FastModel):
+    """``isi``: the reference's Gamma inter-spike intervals, skipping the intervals between firings."""
+
+    name = "isi"
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        p = profile
+        k = count_threshold(p.threshold_e, p.prnu_gain).reshape(-1)
+        self.gb = k - 1.0 / 3.0
+        self.gc = 1.0 / np.sqrt(9.0 * self.gb)
+        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
+        self.dark_e = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e).reshape(-1)
+
+    def init_state(self) -> dict:
+        return {"m": 0, "tau": np.full(self.n_pixels, np.nan)}
+
+    def _tile(self, seg, state, rng, p0, p1, out):
+        _isi_tile(rng, seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
+                  self.gb, self.gc, self.gain, self.dark_e, state["tau"], out)
+
+
+if HAVE_NUMBA:
+    register_fast("elssim", ELSSimFast)
+    register_fast("ideal", IdealFast)
+    register_fast("isi", ISIFast)
+else:  # pragma: no cover
+    warnings.warn("numba is not installed: implementation='fast' falls back to the reference step simulator "
+                  "(about 100x slower); `pip install numba` to enable it", RuntimeWarning, stacklevel=2)
