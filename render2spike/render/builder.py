@@ -1,0 +1,180 @@
+"""Scene -> Mitsuba 3 scene dictionary (camera with the two-channel spectral film, lights, objects).
+
+Shapes and their local geometry (before the object's pose T R S):
+
+* ``rectangle`` ``size: [w, h]`` [m]: the plane z = 0, w x h, normal +z, uv over [0, 1]^2;
+* ``disk`` ``radius`` [m]: z = 0, normal +z, uv polar (u = r / radius, v = angle / 2 pi);
+* ``sphere`` ``radius`` [m]; ``cube`` ``size: [x, y, z]`` [m];
+* ``cylinder`` ``radius``, ``length`` [m] along +z from z = 0;
+* ``mesh`` ``file``: a PLY/OBJ (checked with trimesh), in its own units of metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sensor.errors import DependencyError, InputError
+
+from .motion import Motion, Pose
+from .photometry import fov_x_deg, lux_response, phi_response
+from .scene import Scene, spectrum_curve
+from .textures import make_texture
+
+SENSOR_KEY = "camera"
+
+
+def spectrum_dict(wl, values) -> dict:
+    """Mitsuba ``irregular`` spectrum from arrays (wavelengths in nm)."""
+    return {"type": "irregular",
+            "wavelengths": ", ".join(f"{float(x):.6g}" for x in wl),
+            "values": ", ".join(f"{max(float(v), 0.0):.8g}" for v in values)}
+
+
+def light_spectrum(spec: dict | None, strength: float) -> dict:
+    c = spectrum_curve(spec)
+    return spectrum_dict(c.wavelength_nm, c.values * float(strength))
+
+
+def shape_matrix(obj: dict) -> np.ndarray:
+    """Local 4x4 scaling that gives a unit Mitsuba primitive the object's size."""
+    s = np.eye(4)
+    shp = obj["shape"]
+    if shp == "rectangle":
+        w, h = (obj.get("size") or [1.0, 1.0])[:2]
+        s[0, 0], s[1, 1] = w / 2.0, h / 2.0
+    elif shp == "cube":
+        size = obj.get("size") or [1.0, 1.0, 1.0]
+        if len(size) != 3:
+            raise InputError("a cube's size needs [x, y, z] in metres", field=f"objects.{obj['name']}.size")
+        s[0, 0], s[1, 1], s[2, 2] = (x / 2.0 for x in size)
+    elif shp in ("disk", "sphere"):
+        r = float(obj.get("radius", 0.5))
+        s[0, 0] = s[1, 1] = s[2, 2] = r
+    elif shp == "cylinder":
+        r = float(obj.get("radius", 0.5))
+        s[0, 0] = s[1, 1] = r
+        s[2, 2] = float(obj.get("length", 1.0))
+    return s
+
+
+def object_motion(obj: dict, where: str) -> Motion:
+    base = Pose.from_spec(obj, where=where)
+    return Motion.from_spec(base, obj.get("motion"), where=where)
+
+
+def camera_motion(cam: dict) -> Motion:
+    base = Pose.from_spec(cam, where="camera.")
+    return Motion.from_spec(base, cam.get("motion"), where="camera.")
+
+
+def check_mesh(path) -> int:
+    """Load a mesh with trimesh to check it; returns its face count."""
+    try:
+        import trimesh
+    except ImportError as exc:
+        raise DependencyError("mesh objects need trimesh: pip install trimesh") from exc
+    try:
+        m = trimesh.load(str(path), force="mesh")
+    except Exception as exc:
+        raise InputError(f"trimesh cannot read this mesh ({exc})", path=path) from exc
+    if not hasattr(m, "faces") or len(m.faces) == 0:
+        raise InputError("the mesh has no faces", path=path)
+    return int(len(m.faces))
+
+
+def bsdf_dict(mi, obj: dict, scene: Scene) -> dict:
+    mat = obj.get("material") or {}
+    refl = mat.get("reflectance", 0.5)
+    if isinstance(refl, dict):
+        tex = make_texture(refl, scene.folder)
+        r = {"type": "bitmap", "bitmap": mi.Bitmap(tex[:, :, None].astype(np.float32)), "raw": True,
+             "filter_type": "bilinear", "wrap_mode": "repeat"}
+    else:
+        r = {"type": "uniform", "value": float(refl)}
+    b = {"type": "diffuse", "reflectance": r}
+    if mat.get("two_sided", True):
+        b = {"type": "twosided", "material": b}
+    return b
+
+
+def to_transform(mi, m: np.ndarray):
+    return mi.ScalarTransform4f(np.asarray(m, np.float64).tolist())
+
+
+def build_dict(mi, scene: Scene, *, spp: int = 4, for_meter: dict | None = None) -> tuple[dict, dict]:
+    """The Mitsuba scene dict and the motions of its movable parts {key: (Motion, shape_matrix)}.
+
+    ``for_meter`` (``{"point", "normal", "spp"}``) adds an irradiance-meter disk
+    with a V(lambda) film instead of the camera.
+    """
+    prof = scene.profile
+    cam = scene.camera
+    f_m = float(cam["focal_length_mm"]) * 1e-3
+    motions = {}
+    d = {"type": "scene", "integrator": {"type": "path", "max_depth": int(scene.render["max_depth"])}}
+    if for_meter is None:
+        wl, phi_v = phi_response(prof.qe)
+        wl_e, e_v = lux_response()
+        cm = camera_motion(cam)
+        motions[SENSOR_KEY] = (cm, np.eye(4))
+        d[SENSOR_KEY] = {
+            "type": "perspective",
+            "fov": fov_x_deg(prof.width, prof.pixel_pitch_m, f_m), "fov_axis": "x",
+            "near_clip": 1e-3, "far_clip": 1e4,
+            "to_world": to_transform(mi, cm.matrix(0.0)),
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+            "film": {"type": "specfilm", "width": prof.width, "height": prof.height,
+                     "component_format": "float32", "rfilter": {"type": "box"},
+                     "Phi": spectrum_dict(wl, phi_v), "E": spectrum_dict(wl_e, e_v)},
+        }
+    else:
+        from .motion import look_at_rotation
+        n = np.asarray(for_meter["normal"], np.float64)
+        n = n / np.linalg.norm(n)
+        p = np.asarray(for_meter["point"], np.float64)
+        up = [0, 1, 0] if abs(n[1]) < 0.9 else [1, 0, 0]
+        m = np.eye(4)
+        r_m = 1e-4
+        m[:3, :3] = look_at_rotation([0, 0, 0], n, up) * r_m
+        m[:3, 3] = p + n * max(1e-4, 1e-5 * float(np.linalg.norm(p)))
+        wl_e, e_v = lux_response()
+        d["irradiance_meter"] = {
+            "type": "disk", "to_world": to_transform(mi, m),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}},
+            "sensor": {"type": "irradiancemeter",
+                       "sampler": {"type": "independent", "sample_count": int(for_meter["spp"])},
+                       "film": {"type": "specfilm", "width": 1, "height": 1, "component_format": "float32",
+                                "rfilter": {"type": "box"}, "E": spectrum_dict(wl_e, e_v)}},
+        }
+    for j, lt in enumerate(scene.data["lights"]):
+        key = lt.get("name") or f"light{j}"
+        spec = light_spectrum(lt.get("spectrum"), lt.get("strength", 1.0))
+        if lt["type"] == "directional":
+            d[key] = {"type": "directional", "direction": [float(x) for x in lt["direction"]], "irradiance": spec}
+        elif lt["type"] == "point":
+            d[key] = {"type": "point", "position": [float(x) for x in lt["position"]], "intensity": spec}
+        else:
+            d[key] = {"type": "constant", "radiance": spec}
+    for i, obj in enumerate(scene.data["objects"]):
+        where = f"objects.{i}."
+        key = obj["name"]
+        if key in d:
+            raise InputError(f"object name '{key}' clashes with a light or the camera; rename it",
+                             path=scene.path, field=f"{where}name")
+        mo = object_motion(obj, where)
+        sm = shape_matrix(obj)
+        motions[key] = (mo, sm)
+        shp = obj["shape"]
+        od = {"to_world": to_transform(mi, mo.matrix(0.0) @ sm), "bsdf": bsdf_dict(mi, obj, scene)}
+        if shp == "mesh":
+            f = scene.file(obj["file"], f"{where}file")
+            check_mesh(f)
+            od["type"] = f.suffix.lower().lstrip(".")
+            od["filename"] = str(f)
+        else:
+            od["type"] = shp
+        if "emitter" in obj:
+            em = obj["emitter"]
+            od["emitter"] = {"type": "area", "radiance": light_spectrum(em.get("spectrum"), em.get("strength", 1.0))}
+        d[key] = od
+    return d, motions

@@ -1,0 +1,242 @@
+"""Render a scene to a frames folder: noise budget, adaptive keyframes, resume, progress.
+
+Output (the frame contract of :mod:`sensor.frames`)
+---------------------------------------------------
+``OUT/frame_NNNNNN.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
+``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``,
+``scene_hash``, ``target_lux``, ``made_by``) and ``OUT/frames.json``, written
+last, when every frame is done.
+
+Resume
+------
+``OUT/render_state.json`` records the scene hash and each finished frame
+(written atomically after every frame). Rerunning the same command keeps the
+finished frames and renders only the rest. If the scene, a setting, the
+profile or the Mitsuba variant changed (a different hash), the folder is
+refused, or with ``overwrite=True`` emptied of our files and rendered anew:
+frames of two scenes are never mixed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sensor.errors import InputError
+from sensor.fileio import provenance, write_json_atomic
+from sensor.frames import MANIFEST_NAME, frame_filename, read_frame, write_frame, write_manifest
+
+from . import backend
+from .noise import choose_spp, render_noise_ratio, single_sample_variance
+from .sampling import TimeGrid, adaptive_ticks, change_metric
+from .scene import Scene
+
+STATE_NAME = "render_state.json"
+
+
+@dataclass
+class RenderResult:
+    """What :func:`render_scene` did: the folder, frame count, spp, timings and whether it was already done."""
+
+    out: Path
+    n_frames: int
+    n_rendered: int
+    spp: int
+    scene_hash: str
+    seconds: float
+    up_to_date: bool
+    manifest: dict
+
+
+def _box(img, r: int):
+    from scipy.ndimage import uniform_filter
+    return uniform_filter(np.asarray(img, np.float64), size=2 * r + 1, mode="nearest")
+
+
+def _clean(out: Path, state: dict | None, manifest: dict | None) -> None:
+    names = set()
+    for rec in (state or {}).get("frames", {}).values():
+        names.add(rec["file"])
+    for rec in (manifest or {}).get("frames", []):
+        names.add(rec["file"])
+    for nm in names:
+        (out / nm).unlink(missing_ok=True)
+    for nm in (STATE_NAME, MANIFEST_NAME):
+        (out / nm).unlink(missing_ok=True)
+
+
+def _read_json(p: Path):
+    try:
+        return json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def settings_of(scene: Scene, variant: str) -> dict:
+    """Everything besides the scene data that changes the frames (part of the hash)."""
+    return {"variant": variant, "frames_format": 1}
+
+
+def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
+                 log=print) -> RenderResult:
+    """Render ``scene`` into the frames folder ``out`` (resuming if possible). See the module docstring."""
+    t_start = time.perf_counter()
+    out = Path(out)
+    mi = backend.mitsuba(variant)
+    variant = mi.variant()
+    scene_hash = scene.content_hash(settings_of(scene, variant))
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", path=out)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest = _read_json(out / MANIFEST_NAME)
+    state = _read_json(out / STATE_NAME)
+    old_hash = (manifest or {}).get("scene_hash") or (state or {}).get("scene_hash")
+    if old_hash is not None and old_hash != scene_hash:
+        if not overwrite:
+            raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
+                             f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out",
+                             path=out)
+        _clean(out, state, manifest)
+        manifest = state = None
+    elif (manifest or state) and overwrite:
+        _clean(out, state, manifest)
+        manifest = state = None
+    if manifest is not None and manifest.get("complete") and old_hash == scene_hash:
+        if all((out / f["file"]).is_file() for f in manifest["frames"]):
+            log(f"render: {out} is up to date ({len(manifest['frames'])} frames, scene hash {scene_hash})")
+            return RenderResult(out, len(manifest["frames"]), 0, int(manifest.get("spp", 0)), scene_hash,
+                                time.perf_counter() - t_start, True, manifest)
+    if state is None:
+        state = {"scene_hash": scene_hash, "scene": str(scene.path), "frames": {}, "complete": False}
+    # keep only frames whose files exist
+    state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
+    n_resumed = len(state["frames"])
+
+    from .renderer import SceneRenderer
+    rnd = SceneRenderer(scene, variant)
+    rcfg = scene.render
+    ncfg = rcfg["noise"]
+    W = int(ncfg["window_intervals"])
+    rate_scale = rnd.rate_scale()
+
+    # ---- noise budget: pilot at t = 0 -------------------------------------------------
+    pilot_spp = int(ncfg["pilot_spp"])
+    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(2, dtype=np.uint32)
+    pilots = []
+    for s in seeds:
+        raw_p, raw_e = rnd.render_raw(0.0, int(s), pilot_spp)
+        from .photometry import to_physical
+        phi, _ = to_physical(raw_p, raw_e, rnd.k, rnd.f_number, rnd.transmission, rnd.cos4)
+        pilots.append(phi)
+    v1_phi = single_sample_variance(pilots[0], pilots[1], pilot_spp)
+    rate_pilot = 0.5 * (pilots[0] + pilots[1]) * rate_scale
+    budget = choose_spp(rate_pilot, v1_phi * rate_scale ** 2, W, float(ncfg["target_ratio"]),
+                        int(ncfg["min_spp"]), int(ncfg["max_spp"]))
+    spp = int(rcfg["spp"]) if rcfg["spp"] != "auto" else budget["spp"]
+    if rcfg["spp"] == "auto" and budget["clipped"]:
+        log(f"render: note: the noise budget wants {budget['spp_needed']} spp but max_spp is {ncfg['max_spp']}; "
+            f"render noise will be ~{budget['predicted_ratio']:.2f} of shot noise over {W} intervals")
+    # noise floor for the change metric: smoothed pilot variance at the chosen spp
+    var_floor = np.maximum(_box(v1_phi, 2), float(np.median(v1_phi))) / spp
+
+    # ---- adaptive keyframes ---------------------------------------------------------
+    acfg = rcfg["adaptive"]
+    grid = TimeGrid.make(scene.duration_s, float(rcfg["keyframe_rate_hz"]), float(acfg["max_rate_hz"]))
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover
+        tqdm = None
+    bar = tqdm(total=grid.n_base + 1, unit="frame", desc=f"render {scene.name}", disable=not progress,
+               dynamic_ncols=True) if tqdm else None
+    n_rendered = 0
+    ratios = []
+    made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name, "variant": variant})
+
+    def get_frame(tick: int):
+        nonlocal n_rendered
+        key = str(tick)
+        t_s = grid.time(tick)
+        rec = state["frames"].get(key)
+        if rec is not None:
+            fr = read_frame(out / rec["file"])
+            if bar:
+                bar.update(1)
+            return fr.phi.astype(np.float64)
+        f = rnd.render_frame(t_s, int(rcfg["seed"]), spp)
+        rate_var = None if f["phi_var"] is None else f["phi_var"] * rate_scale ** 2
+        ratio = render_noise_ratio(f["phi"] * rate_scale, rate_var, W)
+        ratios.append(ratio)
+        name = frame_filename(len(state["frames"]) + 0)
+        while (out / name).exists() and name not in {v["file"] for v in state["frames"].values()}:
+            name = frame_filename(int(name[6:12]) + 1)
+        attrs = {"spp": int(spp), "render_noise_ratio": float(ratio), "render_noise_window_intervals": W,
+                 "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
+                 "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
+        write_frame(out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=t_s, attrs=attrs)
+        state["frames"][key] = {"file": name, "time_s": t_s, "render_noise_ratio": float(ratio)}
+        write_json_atomic(out / STATE_NAME, state)
+        n_rendered += 1
+        if bar:
+            bar.update(1)
+        return f["phi"]
+
+    def metric(a, b):
+        return change_metric(a, b, var_floor, var_floor, z=4.0)
+
+    def on_new(n):
+        if bar:
+            bar.total += n
+            bar.refresh()
+
+    try:
+        ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
+                               adaptive=bool(acfg["enabled"]))
+    finally:
+        if bar:
+            bar.close()
+    frames = [{"file": state["frames"][str(t)]["file"], "time_s": grid.time(t)} for t in ticks]
+    # frames rendered in a run that refined differently are not part of the result: drop them
+    keep = {str(t) for t in ticks}
+    for k in [k for k in state["frames"] if k not in keep]:
+        (out / state["frames"][k]["file"]).unlink(missing_ok=True)
+        del state["frames"][k]
+    all_ratios = [state["frames"][str(t)].get("render_noise_ratio", float("nan")) for t in ticks]
+    seconds = time.perf_counter() - t_start
+    prof = scene.profile
+    extra = {
+        "complete": True,
+        "scene_hash": scene_hash,
+        "scene": {"name": scene.name, "path": str(scene.path), "description": scene.data.get("description", "")},
+        "scene_data": scene.data,
+        "illuminance_lux": scene.illuminance_lux,
+        "reference": rnd.calibration,
+        "emitter_scale_w_per_raw": rnd.k,
+        "camera": {"focal_length_mm": scene.camera["focal_length_mm"], "f_number": rnd.f_number,
+                   "transmission": rnd.transmission, "pixel_pitch_m": prof.pixel_pitch_m,
+                   "fill_factor": prof.fill_factor},
+        "profile": {"name": prof.name, "spec": scene.camera["profile"], "height": prof.height, "width": prof.width},
+        "variant": variant,
+        "spp": spp,
+        "noise_budget": budget,
+        "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
+                               "max": float(np.nanmax(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
+                               "window_intervals": W},
+        "temporal_sampling": {"base_rate_hz": float(rcfg["keyframe_rate_hz"]), "max_rate_hz": float(acfg["max_rate_hz"]),
+                              "tolerance": float(acfg["tolerance"]), "adaptive": bool(acfg["enabled"]),
+                              "n_base": grid.n_base + 1, "n_keyframes": len(ticks),
+                              "n_refined": len(ticks) - grid.n_base - 1},
+        "n_rendered_this_run": n_rendered,
+        "n_resumed": n_resumed,
+        "render_seconds": seconds,
+        "provenance": provenance(stage="render"),
+    }
+    manifest = json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    write_manifest(out, prof.height, prof.width, frames, **manifest)
+    state["complete"] = True
+    write_json_atomic(out / STATE_NAME, state)
+    return RenderResult(out, len(frames), n_rendered, spp, scene_hash, seconds, False,
+                        _read_json(out / MANIFEST_NAME) or {})

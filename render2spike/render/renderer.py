@@ -1,0 +1,215 @@
+"""One loaded Mitsuba scene, moved per frame by parameter updates, rendered to physical irradiance.
+
+:class:`SceneRenderer` loads the scene once (``optimize=False`` so every named
+object stays a separate, movable shape), measures the light level once, and
+for each time ``t_s``:
+
+1. sets every moving object's ``to_world`` (or, for meshes, its vertex
+   positions) and the camera's ``to_world`` from :mod:`.motion`;
+2. renders the two-channel spectral film in two independent halves (two seeds
+   derived from the base seed and the frame time), whose difference gives the
+   per-pixel Monte Carlo variance of the frame;
+3. converts raw channels to ``Phi`` [e-/(s m^2)] and ``E`` [lux] with
+   :func:`.photometry.to_physical` (the camera equation, per-pixel cos^4).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from sensor.errors import InputError
+from sensor.units import photoelectron_rate
+
+from . import backend
+from .builder import SENSOR_KEY, build_dict, to_transform
+from .photometry import cos4_map, direct_raw_e, emitter_scale, to_physical
+from .scene import Scene, spectrum_curve
+
+
+def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
+    """``n`` 32-bit render seeds for the frame at ``t_s`` [s], derived from the base seed and the time in ns."""
+    ss = np.random.SeedSequence([int(base_seed), int(round(float(t_s) * 1e9)) & 0xFFFFFFFFFFFF])
+    return [int(s) for s in ss.generate_state(n, dtype=np.uint32)]
+
+
+def split_variance(a, b, na: int, nb: int):
+    """Per-pixel variance of the combined mean of two independent estimates a (na spp) and b (nb spp).
+
+    E[(a-b)^2] = s^2 (1/na + 1/nb) for single-sample variance s^2, and the
+    combined estimate has variance s^2/(na+nb): so var = (a-b)^2 na nb / (na+nb)^2.
+    """
+    return (np.asarray(a) - np.asarray(b)) ** 2 * (na * nb) / float(na + nb) ** 2
+
+
+class SceneRenderer:
+    """Render a :class:`~.scene.Scene` at any time to physical focal-plane irradiance.
+
+    Parameters
+    ----------
+    scene : Scene
+    variant : str, optional
+        Mitsuba variant (default: chosen by :func:`.backend.mitsuba`).
+    """
+
+    def __init__(self, scene: Scene, variant: str | None = None):
+        self.scene = scene
+        self.mi = mi = backend.mitsuba(variant)
+        self.variant = mi.variant()
+        t0 = time.perf_counter()
+        d, self.motions = build_dict(mi, scene)
+        try:
+            self.mi_scene = mi.load_dict(d, optimize=False)
+        except Exception as exc:
+            raise InputError(f"Mitsuba could not build the scene: {exc}", path=scene.path) from exc
+        self.params = mi.traverse(self.mi_scene)
+        self.sensor = self.mi_scene.sensors()[0]
+        self._moving = {}
+        for key, (motion, shape_m) in self.motions.items():
+            if motion.is_static:
+                continue
+            pkey = f"{key}.to_world"
+            if pkey in self.params:
+                self._moving[key] = ("to_world", pkey, motion, shape_m, None)
+            elif f"{key}.vertex_positions" in self.params:
+                vkey = f"{key}.vertex_positions"
+                v = np.array(self.params[vkey], dtype=np.float64).reshape(-1, 3)
+                # vertices were placed with the t = 0 transform; keep the local ones
+                m0 = motion.matrix(0.0) @ shape_m
+                local = (np.linalg.inv(m0) @ np.c_[v, np.ones(len(v))].T).T[:, :3]
+                self._moving[key] = ("vertices", vkey, motion, shape_m, local)
+            else:
+                raise InputError(f"object '{key}' cannot be moved: Mitsuba exposes neither to_world nor "
+                                 "vertex_positions for it", path=scene.path, field=f"objects.{key}.motion")
+        cam = scene.camera
+        prof = scene.profile
+        self.height, self.width = prof.height, prof.width
+        self.f_number = float(cam["f_number"])
+        self.transmission = float(cam["transmission"])
+        self.focal_length_m = float(cam["focal_length_mm"]) * 1e-3
+        self.cos4 = cos4_map(prof.height, prof.width, prof.pixel_pitch_m, self.focal_length_m)
+        self.load_s = time.perf_counter() - t0
+        self.reference = self._reference_point()
+        self.calibration = self.measure_reference()
+        self.k = emitter_scale(scene.illuminance_lux, self.calibration["raw_e_total"])
+
+    # --------------------------------------------------------------- motion
+    @property
+    def is_static(self) -> bool:
+        return not self._moving
+
+    def set_time(self, t_s: float) -> None:
+        """Move every moving object and the camera to their poses at ``t_s`` [s]."""
+        if not self._moving:
+            return
+        mi = self.mi
+        for key, (kind, pkey, motion, shape_m, local) in self._moving.items():
+            m = motion.matrix(t_s) @ shape_m
+            if kind == "to_world":
+                self.params[pkey] = to_transform(mi, m)
+            else:
+                v = (m @ np.c_[local, np.ones(len(local))].T).T[:, :3]
+                self.params[pkey] = mi.Float(v.astype(np.float32).ravel())
+        self.params.update()
+
+    # ----------------------------------------------------------- rendering
+    def render_raw(self, t_s: float, seed: int, spp: int) -> tuple[np.ndarray, np.ndarray]:
+        """Raw film channels (Phi_raw, E_raw), float64 (H, W), at ``t_s`` with ``spp`` samples per pixel."""
+        self.set_time(t_s)
+        img = self.mi.render(self.mi_scene, sensor=self.sensor, seed=int(seed), spp=int(spp))
+        arr = np.asarray(img, dtype=np.float64)
+        names = self._channel_names()
+        return arr[..., names.index("Phi")], arr[..., names.index("E")]
+
+    def _channel_names(self):
+        if not hasattr(self, "_names"):
+            bmp = self.sensor.film().bitmap()
+            self._names = [bmp.struct_()[i].name for i in range(bmp.channel_count())]
+        return self._names
+
+    def render_frame(self, t_s: float, base_seed: int, spp: int) -> dict:
+        """Physical frame at ``t_s`` [s]: ``phi`` [e-/(s m^2)], ``lux`` [lux], ``phi_var`` (MC variance of phi).
+
+        Renders two halves (ceil(spp/2), floor(spp/2)) with independent seeds;
+        with spp = 1 there is no variance estimate (``phi_var`` is None).
+        """
+        sa, sb = frame_seeds(base_seed, t_s, 2)
+        na = (int(spp) + 1) // 2
+        nb = int(spp) - na
+        pa, ea = self.render_raw(t_s, sa, na)
+        if nb > 0:
+            pb, eb = self.render_raw(t_s, sb, nb)
+            raw_p = (pa * na + pb * nb) / spp
+            raw_e = (ea * na + eb * nb) / spp
+            var_raw = split_variance(pa, pb, na, nb)
+        else:
+            raw_p, raw_e, var_raw = pa, ea, None
+        phi, lux = to_physical(raw_p, raw_e, self.k, self.f_number, self.transmission, self.cos4)
+        out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": [sa, sb][: 2 if nb else 1], "spp": int(spp)}
+        if var_raw is not None:
+            fp, _ = to_physical(1.0, 1.0, self.k, self.f_number, self.transmission, self.cos4)
+            out["phi_var"] = var_raw * fp ** 2
+        else:
+            out["phi_var"] = None
+        return out
+
+    def rate_e(self, phi):
+        """Phi [e-/(s m^2)] -> rate_e [e-/interval] for the scene's profile (sensor.units.photoelectron_rate)."""
+        p = self.scene.profile
+        return photoelectron_rate(phi, p.pixel_pitch_m, p.fill_factor, p.interval_s)
+
+    def rate_scale(self) -> float:
+        """rate_e per unit Phi: pitch^2 * fill * T_r [m^2 s]."""
+        return float(photoelectron_rate(np.ones(1), self.scene.profile.pixel_pitch_m, self.scene.profile.fill_factor,
+                                        self.scene.profile.interval_s)[0])
+
+    # ----------------------------------------------------------- light level
+    def _reference_point(self) -> dict:
+        ref = self.scene.data["reference"]
+        if "object" in ref:
+            motion, shape_m = self.motions[ref["object"]]
+            m = motion.matrix(0.0) @ shape_m
+            n = m[:3, 2] / np.linalg.norm(m[:3, 2])
+            return {"point": m[:3, 3].tolist(), "normal": n.tolist(), "object": ref["object"]}
+        n = np.asarray(ref["normal"], np.float64)
+        return {"point": [float(x) for x in ref["point"]], "normal": (n / np.linalg.norm(n)).tolist()}
+
+    def _visible(self, point, normal, direction, dist) -> bool:
+        mi = self.mi
+        o = np.asarray(point) + 1e-4 * np.asarray(normal)
+        ray = mi.Ray3f(mi.Point3f(*[float(x) for x in o]), mi.Vector3f(*[float(x) for x in direction]))
+        if np.isfinite(dist):
+            ray.maxt = float(dist) * (1 - 1e-4)
+        hit = self.mi_scene.ray_test(ray)
+        return not bool(np.asarray(hit).reshape(-1)[0])
+
+    def measure_reference(self) -> dict:
+        """Raw illuminance (V-weighted) at the reference at t = 0: analytic delta lights + irradiance meter."""
+        self.set_time(0.0)
+        p, n = self.reference["point"], self.reference["normal"]
+        direct = 0.0
+        parts = []
+        for j, lt in enumerate(self.scene.data["lights"]):
+            if lt["type"] not in ("directional", "point"):
+                continue
+            e, to_light, dist = direct_raw_e(lt, spectrum_curve(lt.get("spectrum")), p, n)
+            vis = e > 0 and self._visible(p, n, to_light, dist)
+            direct += e if vis else 0.0
+            parts.append({"light": lt.get("name") or f"light{j}", "raw_e": e if vis else 0.0, "visible": bool(vis)})
+        mi = self.mi
+        spp = int(self.scene.render["meter_spp"])
+        d, _ = build_dict(mi, self.scene, for_meter={"point": p, "normal": n, "spp": spp})
+        meter_scene = mi.load_dict(d, optimize=False)
+        meter_sensor = [s for s in meter_scene.sensors() if "irradiancemeter" in type(s).__name__.lower()
+                        or "IrradianceMeter" in str(s)]
+        meter_sensor = meter_sensor[0] if meter_sensor else meter_scene.sensors()[-1]
+        # the meter measures E_raw with two independent halves -> its own MC error
+        ss = np.random.SeedSequence([int(self.scene.render["seed"]), 0x5EED]).generate_state(2, dtype=np.uint32)
+        vals = [float(np.asarray(mi.render(meter_scene, sensor=meter_sensor, seed=int(s), spp=spp // 2)).ravel()[0])
+                for s in ss]
+        meter = 0.5 * (vals[0] + vals[1])
+        meter_se = abs(vals[0] - vals[1]) / 2.0
+        total = direct + meter
+        return {"raw_e_direct_delta": direct, "raw_e_meter": meter, "raw_e_meter_stderr": meter_se,
+                "raw_e_total": total, "delta_lights": parts, "meter_spp": spp, **self.reference}
