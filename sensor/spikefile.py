@@ -164,3 +164,76 @@ def read_spikes(path, height: int = 250, width: int = 400, drop_columns: int = 0
     H, W = meta["height"], meta["width"]
     s = np.unpackbits(packed, axis=1, bitorder="little", count=H * W).astype(bool).reshape(-1, H, W)
     return s, meta
+
+
+class SpikeWriter:
+    """Write a spike stream block by block to ``.dat`` or ``.npz``; the file appears only on :meth:`close`.
+
+    ``.dat`` streams to a temporary file beside the target (bounded memory);
+    ``.npz`` keeps the bit-packed blocks (1 bit per pixel-interval) in memory
+    until close. On an exception inside a ``with`` block nothing is left behind.
+    """
+
+    def __init__(self, path, *, interval_s: float, model: str, profile_id: str, seed, source: str = "",
+                 implementation: str = "", extra: dict | None = None):
+        self.path = Path(path)
+        self.kind = "dat" if self.path.suffix.lower() == ".dat" else "npz"
+        if self.kind == "npz" and self.path.suffix.lower() != ".npz":
+            raise SpikeFileError("output must end in .dat (SpikeCV layout) or .npz (container with metadata)",
+                                 path=self.path)
+        self.meta = dict(interval_s=interval_s, model=model, profile_id=profile_id, seed=seed, source=source,
+                         implementation=implementation, extra=extra)
+        self._blocks: list[np.ndarray] = []
+        self._ctx = None
+        self._fh = None
+        self.n_intervals = 0
+        self.n_spikes = 0
+        self.shape = None
+        if self.kind == "dat":
+            self._ctx = atomic_path(self.path)
+            self._tmp = self._ctx.__enter__()
+            self._fh = open(self._tmp, "wb")
+
+    def write(self, spikes) -> None:
+        """Append bool spikes (n, H, W) in image orientation."""
+        s = np.asarray(spikes, bool)
+        if s.shape[0] == 0:
+            return
+        if self.shape is None:
+            self.shape = s.shape[1:]
+        self.n_intervals += s.shape[0]
+        self.n_spikes += int(s.sum())
+        if self.kind == "dat":
+            pack_dat_frames(s).tofile(self._fh)
+        else:
+            self._blocks.append(np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little"))
+
+    def close(self) -> Path:
+        if self.kind == "dat":
+            self._fh.close()
+            self._ctx.__exit__(None, None, None)
+            return self.path
+        H, W = self.shape if self.shape is not None else (0, 0)
+        packed = np.concatenate(self._blocks) if self._blocks else np.zeros((0, (H * W + 7) // 8), np.uint8)
+        m = self.meta
+        return write_spikes(self.path, packed=packed, height=H, width=W, interval_s=m["interval_s"], model=m["model"],
+                            profile_id=m["profile_id"], seed=m["seed"], source=m["source"],
+                            implementation=m["implementation"], extra=m["extra"])
+
+    def abort(self) -> None:
+        if self.kind == "dat" and self._fh is not None:
+            self._fh.close()
+            try:
+                self._ctx.__exit__(SpikeFileError, SpikeFileError("aborted"), None)
+            except SpikeFileError:
+                pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False

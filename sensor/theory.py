@@ -105,6 +105,26 @@ def isi_moments(lam: float, k: float, p_dark: float = 0.0, f: float = 0.0, n_max
     return float(m1), float(m2 - m1 * m1)
 
 
+def renewal_density(pmf_first, pmf, T: int) -> np.ndarray:
+    """u(n) = P(spike in interval n), n = 1..T, for a discrete renewal process.
+
+    ``pmf_first[m]`` is P(first ISI = m) counted from the start of the stream
+    (index 0 unused), ``pmf[m]`` P(ISI = m) between spikes. Solves
+    ``u(n) = pmf_first(n) + sum_{m<n} u(m) pmf(n - m)``. The expected number of
+    spikes in T intervals is ``u.sum()``: exact, including the start-up.
+    """
+    pf = np.zeros(T + 1)
+    pf[:min(T + 1, len(pmf_first))] = np.asarray(pmf_first, np.float64)[:T + 1]
+    pm = np.zeros(T + 1)
+    pm[:min(T + 1, len(pmf))] = np.asarray(pmf, np.float64)[:T + 1]
+    u = np.zeros(T + 1)
+    support = np.flatnonzero(pm > 1e-300)
+    for n in range(1, T + 1):
+        sup = support[(support >= 1) & (support < n)]
+        u[n] = pf[n] + np.dot(u[n - sup], pm[sup])
+    return u[1:]
+
+
 def spike_rate(lam, k, p_dark=0.0, f=0.0) -> np.ndarray:
     """Long-run spikes per interval of a constant-rate ELSSim pixel: 1 / mean ISI."""
     return 1.0 / mean_isi(lam, k, p_dark, f)

@@ -1,0 +1,77 @@
+"""``render2spike info``: say what a spike, frames or profile file holds."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+HELP = "describe a spike file (.npz/.dat), a frames folder or a sensor profile"
+
+
+def register(sub) -> None:
+    p = sub.add_parser("info", help=HELP, description=HELP + ".",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       epilog="examples:\n  render2spike info vidar-default\n  render2spike info out/demo/frames\n"
+                              "  render2spike info rec.dat --height 250 --width 416 --raw")
+    p.add_argument("file", metavar="FILE", help="spike .npz/.dat, frames folder, profile .npz or bundled profile name")
+    p.add_argument("--height", type=int, default=250, help=".dat frame height (default 250)")
+    p.add_argument("--width", type=int, default=400, help=".dat frame width (default 400)")
+    p.add_argument("--raw", action="store_true", help=".dat is a raw 416-wide capture (drop 16 columns)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=run)
+
+
+def describe(path, height=250, width=400, raw=False) -> dict:
+    from sensor.errors import InputError
+    from sensor.profile import SensorProfile, bundled_profiles
+    p = Path(path)
+    if p.is_dir():
+        from sensor.frames import read_frames
+        fs = read_frames(p)
+        fr = fs.read(0)
+        t = fs.times_s
+        return {"kind": "frames folder", "frames": len(fs), "height": fs.shape[0], "width": fs.shape[1],
+                "time_s": [float(t[0]), float(t[-1])], "channels": fs.manifest.get("channels"),
+                "first_frame_phi_mean_e_per_s_m2": float(fr.phi.mean()),
+                "first_frame_E_mean_lux": float(fr.illuminance_lux.mean()),
+                "first_frame_header": {k: (v if isinstance(v, (int, float, str)) else str(v))
+                                       for k, v in fr.header.items()},
+                **{k: fs.manifest[k] for k in ("scene", "target_lux", "provenance") if k in fs.manifest}}
+    if not p.exists() and str(path) in bundled_profiles():
+        return {"kind": "sensor profile (bundled)", **SensorProfile.load(str(path)).summary()}
+    if not p.exists():
+        raise InputError("does not exist", path=p)
+    if p.suffix == ".dat":
+        from sensor.spikefile import dat_frame_count, read_dat
+        w = 416 if raw else width
+        n = dat_frame_count(p, height, w)
+        s = read_dat(p, height, w, drop_columns=16 if raw else 0, count=min(n, 20000))
+        return {"kind": "SpikeCV .dat spike stream", "intervals": n, "height": height, "width": s.shape[2],
+                "mean_spike_rate_per_interval (first 20000)": float(s.mean()) if s.size else 0.0}
+    if p.suffix == ".npz":
+        with np.load(p, allow_pickle=False) as z:
+            files = z.files
+            meta = json.loads(bytes(z["meta_json"]).decode()) if "meta_json" in z else {}
+        fmt = meta.get("format")
+        if fmt == "render2spike-sensor-profile":
+            return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}
+        if fmt == "render2spike-spikes":
+            from sensor.spikefile import read_spikes
+            s, _ = read_spikes(p)
+            return {"kind": "spike container", **{k: v for k, v in meta.items() if k != "format"},
+                    "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
+        return {"kind": "npz arrays", "arrays": {k: list(np.load(p)[k].shape) for k in files}}
+    raise InputError("unknown file type (expected .npz, .dat, a frames folder or a bundled profile name)", path=p)
+
+
+def run(args) -> int:
+    info = describe(args.file, args.height, args.width, args.raw)
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+    else:
+        for k, v in info.items():
+            print(f"{k:>40}: {v}")
+    return 0
