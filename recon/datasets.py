@@ -1,0 +1,563 @@
+"""Datasets for training and evaluating reconstruction: rendered sequences, DAVIS-derived, SDMD-style pairs.
+
+Every item is a :class:`Sample`: the spike stream around one instant, the
+network input (10 TFP windows of 32 intervals), the sensor maps and the
+ground truth. The torch ``Dataset`` protocol (``__len__``/``__getitem__``)
+is implemented without importing torch, so the classes also serve numpy-only
+evaluation.
+
+Ground truth and its normalisation (all three kinds)
+---------------------------------------------------
+The target is the clean intensity at the centre of the M = 320-interval
+network input, expressed as **ideal spikes per interval**:
+``y = lambda_c / threshold_e``, with ``lambda_c`` the exact expected
+photoelectrons of the centre interval (``sensor.interval_rates`` of the clean
+rate) and ``threshold_e`` the profile's threshold. It is what a noise-free
+ideal pixel without refractory loss would fire per interval, the same scale
+as TFP, so every method's output is compared on it without fitting. For
+SDMD-style real pairs the reference image is converted to this scale with one
+factor per scene (see :class:`SDMDDataset`).
+
+Randomness
+----------
+Item ``i`` of epoch ``e`` draws everything (crop, lux, spike noise) from
+``numpy.random.SeedSequence(seed, spawn_key=(KIND, e, i))``; the same seed,
+epoch and index give the same sample bitwise. Test splits use epoch 0.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sensor.errors import InputError
+from sensor.profile import SensorProfile
+
+from .classic import RSIR_N_WINDOWS, RSIR_WINDOW, tfp, tfp_windows
+from .imageio import read_reference, read_srgb_luminance
+
+DATA_DIR = Path(__file__).with_name("data")
+DAVIS_SPLIT_FILE = DATA_DIR / "davis2017_split.json"
+
+#: the synthetic sensor drawn when no profile is named (values of the bundled vidar-default profile, see
+#: docs/sensor.md: threshold 2000 e-, dark 94 Hz = 0.0047 events per 50 us interval, log spread 0.37,
+#: PRNU sigma 0.058, 0.1 % hot pixels)
+DEFAULT_SYNTHETIC = dict(threshold_e=2000.0, dark_rate=94.0 * 50e-6, dark_rate_spread=0.37, prnu_sigma=0.058,
+                         hot_pixel_fraction=1e-3, hot_mu=0.05, hot_mu_spread=0.5, hot_sigma=0.02)
+_KIND_KEYS = {"davis": 1, "rendered": 2, "sdmd": 3}
+
+
+# -------------------------------------------------------------------------------------------------- samples
+@dataclass
+class Sample:
+    """One item.
+
+    Attributes
+    ----------
+    windows : float32 (N, H, W)
+        TFP windows [spikes/interval], the network input.
+    target : float32 (1, H, W)
+        Ground truth [ideal spikes per interval = rate_e / threshold_e].
+    maps : float32 (2, H, W)
+        Dark-event probability per interval and PRNU gain of the pixels.
+    spikes : bool (L, H, W) or None
+        The spike stream (L >= M intervals), kept for classic methods.
+    center : int
+        Index in ``spikes`` of the interval the target refers to.
+    profile : SensorProfile or None
+        The sensor (window) that recorded / simulated these pixels.
+    name : str
+        Human-readable identifier.
+    meta : dict
+        Lux, seed, model, ...
+    """
+
+    windows: np.ndarray
+    target: np.ndarray
+    maps: np.ndarray
+    spikes: np.ndarray | None = None
+    center: int = 0
+    profile: SensorProfile | None = None
+    name: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def training_dict(self) -> dict:
+        return {"windows": self.windows, "target": self.target, "maps": self.maps}
+
+
+def item_seed_sequence(seed: int, kind: str, epoch: int, index: int) -> np.random.SeedSequence:
+    """The SeedSequence of item ``index`` in ``epoch`` of a dataset of ``kind`` (see module docstring)."""
+    return np.random.SeedSequence(int(seed), spawn_key=(_KIND_KEYS.get(kind, 9), int(epoch), int(index)))
+
+
+def _children(ss: np.random.SeedSequence):
+    """(generator for item choices, integer seed for the spike simulation)."""
+    a, b = ss.spawn(2)
+    return np.random.Generator(np.random.PCG64(a)), int(b.generate_state(1, np.uint32)[0])
+
+
+def sensor_maps(profile: SensorProfile) -> np.ndarray:
+    """float32 (2, H, W): dark-event probability per interval (1 - exp(-mu_DC)) and PRNU gain."""
+    from sensor.effects import dark_event_probability
+    return np.stack([dark_event_probability(profile.dark_rate), profile.prnu_gain]).astype(np.float32)
+
+
+def parse_hw(text, field_name: str) -> tuple[int, int]:
+    """'HxW' -> (H, W)."""
+    try:
+        h, w = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise InputError(f"expected HEIGHTxWIDTH (e.g. 64x64), got '{text}'", field=field_name) from None
+    if h < 1 or w < 1:
+        raise InputError(f"size must be positive, got {h}x{w}", field=field_name)
+    return h, w
+
+
+def resolve_profile(spec: str | SensorProfile | None, height: int, width: int, seed: int = 0) -> SensorProfile:
+    """A profile of exactly ``height x width``: a bundled name / path (centre window if larger) or 'synthetic'."""
+    if isinstance(spec, SensorProfile):
+        prof = spec
+    elif spec in (None, "", "synthetic"):
+        return SensorProfile.synthetic(height, width, seed=seed, name=f"recon-synthetic-{height}x{width}-s{seed}",
+                                       **DEFAULT_SYNTHETIC)
+    else:
+        prof = SensorProfile.load(spec)
+    if prof.shape == (height, width):
+        return prof
+    if prof.height < height or prof.width < width:
+        raise InputError(f"profile '{prof.name}' is {prof.height}x{prof.width}, smaller than the "
+                         f"{height}x{width} data", field="profile")
+    top, left = (prof.height - height) // 2, (prof.width - width) // 2
+    return prof.window(top, left, height, width)
+
+
+class _Base:
+    """Shared machinery: the M-interval block, windows, warm-up, epochs."""
+
+    kind = "base"
+
+    def __init__(self, *, model: str = "elssim", seed: int = 0, n_windows: int = RSIR_N_WINDOWS,
+                 window: int = RSIR_WINDOW, intervals: int | None = None, warmup: int = 64,
+                 include_spikes: bool = False, max_items: int | None = None, implementation: str = "fast"):
+        from sensor.models import MODELS
+        if model not in MODELS:
+            from sensor.errors import UnknownMethodError
+            raise UnknownMethodError("spike model", model, MODELS)
+        self.model, self.seed = model, int(seed)
+        self.n_windows, self.window = int(n_windows), int(window)
+        self.M = self.n_windows * self.window
+        self.L = max(self.M, int(intervals or self.M))
+        self.warmup = int(warmup)
+        self.include_spikes = include_spikes
+        self.max_items = max_items
+        self.implementation = implementation
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw new crops / light levels / noise for every item (training); call once per epoch."""
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        n = len(self.items)
+        return n if self.max_items is None else min(n, int(self.max_items))
+
+    def __getitem__(self, i: int) -> dict:
+        return self.sample(i).training_dict()
+
+    def _finish(self, spikes, lam_center, profile, name, meta) -> Sample:
+        """Build a Sample from L simulated intervals and the clean rate of the centre interval."""
+        c = self.L // 2
+        windows = tfp_windows(spikes, self.n_windows, self.window, center=c)
+        target = (np.asarray(lam_center, np.float32) / np.float32(profile.threshold_e))[None]
+        meta = dict(meta, window=self.window, n_windows=self.n_windows)
+        return Sample(windows=windows, target=target, maps=sensor_maps(profile),
+                      spikes=spikes if self.include_spikes else None, center=c, profile=profile, name=name,
+                      meta=meta)
+
+    def _simulate(self, lam, profile, sim_seed):
+        from sensor import simulate
+        spikes = simulate(lam, profile, self.model, seed=sim_seed, implementation=self.implementation)
+        return spikes[self.warmup:]
+
+
+# ------------------------------------------------------------------------------------------------------ DAVIS
+def load_split(path) -> dict:
+    """A split file: JSON ``{"train": [names], "test": [names], ...}``; returns the dict."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("split file does not exist", path=path)
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"invalid JSON ({exc})", path=path) from exc
+    for key in ("train", "test"):
+        if not isinstance(d.get(key), list):
+            raise InputError("missing list of names", path=path, field=key)
+    return d
+
+
+def _select_split(names_present: list[str], split: str, split_file, root) -> list[str]:
+    if split == "all":
+        return sorted(names_present)
+    if split not in ("train", "test"):
+        raise InputError(f"split must be train, test or all; got '{split}'", field="split")
+    sp = load_split(split_file)
+    wanted = list(sp[split])
+    have = set(names_present)
+    chosen = [n for n in wanted if n in have]
+    if not chosen:
+        raise InputError(f"none of the {len(wanted)} '{split}' sequences of {split_file} are in this folder "
+                         f"(it has {len(have)}: {', '.join(sorted(have)[:5])}{'...' if len(have) > 5 else ''})",
+                         path=root, field="split")
+    return chosen
+
+
+class DavisDataset(_Base):
+    """DAVIS-2017-derived spike data: ``ROOT/JPEGImages/480p/<sequence>/*.jpg``.
+
+    Per item (sequence, start frame):
+
+    1. frames are read as sRGB, decoded to linear luminance ``Y`` in [0, 1]
+       (Rec. 709 weights), resized (bicubic, aspect kept) to cover the sensor
+       resolution ``res`` and centre-cropped to it; training items then take a
+       ``crop`` at a random offset (test items: the centre);
+    2. ``Y`` is read as the reflectance of a Lambertian scene under ``lux``
+       (illuminance [lm/m^2], drawn log-uniformly per item when a range) seen
+       through an f/``f_number`` lens of ``transmission``: the focal-plane
+       illuminance is ``E = Y lux T / (4 N^2)``
+       (``sensor.units.lambertian_radiance`` then
+       ``sensor.units.image_plane_illuminance_lux``); light of a black body at
+       ``kelvin`` converts it with
+       ``sensor.spectral.electrons_per_lux_second_m2`` (using the profile's QE)
+       to ``Phi`` [e-/(s m^2)], and ``sensor.photoelectron_rate`` to
+       ``rate_e`` [e-/interval];
+    3. video frame ``j`` sits at ``t = j * ipf * T_r`` (``ipf`` intervals per
+       frame); the rate is piecewise-linear between frames
+       (``sensor.interval_rates``); sequences shorter than needed play back and
+       forth;
+    4. ``warmup + L`` intervals are simulated with the chosen model and
+       profile; the warm-up is dropped (the sensor starts from zero charge).
+
+    Parameters
+    ----------
+    root : path
+        DAVIS root (holding ``JPEGImages/480p``).
+    split : 'train' | 'test' | 'all'
+        Sequences from ``split_file`` (default: the shipped 85/5 split).
+    profile : str or SensorProfile, optional
+        Sensor; default a synthetic vidar-like sensor at ``res``.
+    res : (H, W)
+        Sensor resolution the frames are fitted to (default the profile's, else 250 x 400).
+    crop : (H, W), optional
+        Patch size of each item (default ``res``).
+    lux : float or (lo, hi)
+        Scene illuminance [lux].
+    ipf : int
+        Intervals per video frame.
+    frame_stride : int
+        One item every ``frame_stride`` frames of each sequence.
+    """
+
+    kind = "davis"
+
+    def __init__(self, root, split: str = "train", *, profile=None, res=None, crop=None, lux=(5.0, 50.0),
+                 f_number: float = 2.0, transmission: float = 0.9, kelvin: float = 5000.0, ipf: int = 160,
+                 frame_stride: int = 4, split_file=None, **kw):
+        super().__init__(**kw)
+        self.root = Path(root)
+        jpeg = self.root / "JPEGImages" / "480p"
+        if not jpeg.is_dir():
+            raise InputError("not a DAVIS folder: expected JPEGImages/480p/<sequence>/*.jpg inside", path=self.root)
+        present = sorted(p.name for p in jpeg.iterdir() if p.is_dir())
+        self.split = split
+        self.split_file = Path(split_file) if split_file else DAVIS_SPLIT_FILE
+        self.sequences = _select_split(present, split, self.split_file, self.root)
+        self.frames = {}
+        for name in self.sequences:
+            files = sorted(p for p in (jpeg / name).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+            if not files:
+                raise InputError("sequence folder holds no .jpg frames", path=jpeg / name)
+            self.frames[name] = files
+        if isinstance(profile, SensorProfile) and res is None:
+            res = profile.shape
+        elif res is None and profile not in (None, "", "synthetic"):
+            res = SensorProfile.load(profile).shape
+        self.res = tuple(res) if res is not None else (250, 400)
+        self.crop = tuple(crop) if crop is not None else self.res
+        if self.crop[0] > self.res[0] or self.crop[1] > self.res[1]:
+            raise InputError(f"crop {self.crop} is larger than the sensor resolution {self.res}", field="crop")
+        self.profile_full = resolve_profile(profile, *self.res, seed=self.seed)
+        lux = (float(lux), float(lux)) if np.isscalar(lux) else (float(lux[0]), float(lux[1]))
+        if not (0 < lux[0] <= lux[1]):
+            raise InputError(f"lux must be > 0 (lo <= hi), got {lux}", field="lux")
+        self.lux = lux
+        self.f_number, self.transmission, self.kelvin = float(f_number), float(transmission), float(kelvin)
+        self.ipf, self.frame_stride = int(ipf), int(frame_stride)
+        if self.ipf < 1 or self.frame_stride < 1:
+            raise InputError("ipf and frame_stride must be >= 1", field="ipf")
+        self.items = [(name, f0) for name in self.sequences for f0 in range(0, len(self.frames[name]),
+                                                                               self.frame_stride)]
+        self.train = split == "train"
+        self._frame_cache = functools.lru_cache(maxsize=256)(self._load_frame)
+
+    def rate_per_lux(self, profile: SensorProfile) -> float:
+        """rate_e [e-/interval] of a reflectance-1 pixel per lux of scene illuminance."""
+        from sensor import photoelectron_rate
+        from sensor.spectral import blackbody_spd, electrons_per_lux_second_m2
+        from sensor.units import image_plane_illuminance_lux, lambertian_radiance
+        e_focal = image_plane_illuminance_lux(lambertian_radiance(1.0, 1.0), self.f_number, self.transmission)
+        k = electrons_per_lux_second_m2(blackbody_spd(self.kelvin), profile.qe)
+        return float(photoelectron_rate(np.float64(e_focal * k), profile))
+
+    def _load_frame(self, name: str, j: int) -> np.ndarray:
+        from PIL import Image
+        y = read_srgb_luminance(self.frames[name][j])
+        H, W = self.res
+        h0, w0 = y.shape
+        s = max(H / h0, W / w0)
+        nh, nw = max(H, int(round(h0 * s))), max(W, int(round(w0 * s)))
+        im = Image.fromarray(y.astype(np.float32), mode="F").resize((nw, nh), Image.BICUBIC)
+        y = np.clip(np.asarray(im, np.float32), 0.0, 1.0)
+        top, left = (nh - H) // 2, (nw - W) // 2
+        return y[top:top + H, left:left + W]
+
+    def sample(self, i: int) -> Sample:
+        from sensor import interval_rates
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        name, f0 = self.items[i]
+        rng, sim_seed = _children(item_seed_sequence(self.seed, self.kind, self.epoch if self.train else 0, i))
+        H, W = self.res
+        ch, cw = self.crop
+        if self.train:
+            top, left = int(rng.integers(0, H - ch + 1)), int(rng.integers(0, W - cw + 1))
+            lux = float(np.exp(rng.uniform(np.log(self.lux[0]), np.log(self.lux[1]))))
+        else:
+            top, left = (H - ch) // 2, (W - cw) // 2
+            lux = float(np.sqrt(self.lux[0] * self.lux[1]))
+        prof = self.profile_full if (ch, cw) == (H, W) else self.profile_full.window(top, left, ch, cw)
+        n_int = self.warmup + self.L
+        n_frames = int(np.ceil(n_int / self.ipf)) + 1
+        nf = len(self.frames[name])
+        period = max(2 * nf - 2, 1)
+        idx = [(f0 + j) % period for j in range(n_frames)]
+        idx = [j if j < nf else period - j for j in idx]  # play back and forth
+        ys = np.stack([self._frame_cache(name, j)[top:top + ch, left:left + cw] for j in idx])
+        rate_kf = ys * np.float32(lux * self.rate_per_lux(prof))
+        t_s = np.arange(n_frames) * self.ipf * prof.interval_s
+        lam = interval_rates(rate_kf, t_s, n_intervals=n_int, interval_s=prof.interval_s)
+        spikes = self._simulate(lam, prof, sim_seed)
+        meta = {"sequence": name, "start_frame": f0, "lux": lux, "crop_top_left": (top, left), "model": self.model,
+                "sim_seed": sim_seed, "epoch": self.epoch if self.train else 0}
+        return self._finish(spikes, lam[self.warmup + self.L // 2], prof, f"{name}@{f0}", meta)
+
+
+# --------------------------------------------------------------------------------------------------- rendered
+class RenderedDataset(_Base):
+    """Frames folders from the render stage (``frames.json`` + EXR ``Phi`` frames).
+
+    The clean rate is ``sensor.photoelectron_rate(Phi, profile)`` interpolated
+    per interval (``sensor.interval_rates``). Items are blocks of
+    ``warmup + L`` intervals every ``stride`` intervals of each folder.
+    Spikes are simulated on the fly with the chosen model, or read from a
+    stored spike file (``spikes``: a file name inside each folder or a path;
+    its interval m is interval m of the frames' timeline, and then no warm-up
+    is needed beyond the stored stream's own).
+
+    Parameters
+    ----------
+    paths : list of paths
+        Frames folders.
+    profile : str or SensorProfile, optional
+        Must match the frames' resolution (a larger profile is centre-windowed);
+        default a synthetic vidar-like sensor.
+    crop : (H, W), optional
+        Centre crop of every frame (and of the profile).
+    stride : int, optional
+        Intervals between item starts (default L).
+    spikes : str, optional
+        Stored spike file per folder.
+    """
+
+    kind = "rendered"
+
+    def __init__(self, paths, *, profile=None, crop=None, stride: int | None = None, spikes: str | None = None,
+                 **kw):
+        from sensor import read_frames
+        from sensor.rates import n_intervals_spanned
+        super().__init__(**kw)
+        if not paths:
+            raise InputError("no frames folders given", field="paths")
+        self.seqs = [read_frames(p) for p in paths]
+        shapes = {s.shape for s in self.seqs}
+        if len(shapes) != 1:
+            raise InputError(f"frames folders differ in resolution: {sorted(shapes)}", field="paths")
+        H, W = shapes.pop()
+        self.crop = tuple(crop) if crop is not None else (H, W)
+        if self.crop[0] > H or self.crop[1] > W:
+            raise InputError(f"crop {self.crop} is larger than the frames ({H}x{W})", field="crop")
+        self.top, self.left = (H - self.crop[0]) // 2, (W - self.crop[1]) // 2
+        full = resolve_profile(profile, H, W, seed=self.seed)
+        self.profile = full if self.crop == (H, W) else full.window(self.top, self.left, *self.crop)
+        self.spikes_name = spikes
+        self.stride = int(stride or self.L)
+        need = self.L + (0 if spikes else self.warmup)
+        self.items = []
+        for si, s in enumerate(self.seqs):
+            t = s.times_s
+            total = n_intervals_spanned(t[0], t[-1], self.profile.interval_s) if t.size > 1 else 0
+            for m0 in range(0, total - need + 1, self.stride):
+                self.items.append((si, m0))
+        if not self.items:
+            raise InputError(f"the frames span fewer than the {need} intervals one item needs "
+                             f"({self.L} + warm-up {0 if spikes else self.warmup})", field="paths")
+
+    @functools.lru_cache(maxsize=8)
+    def _rates(self, si: int):
+        from sensor import photoelectron_rate
+        s = self.seqs[si]
+        ch, cw = self.crop
+        phi = s.phi_stack()[:, self.top:self.top + ch, self.left:self.left + cw]
+        return photoelectron_rate(phi, self.profile), s.times_s
+
+    @functools.lru_cache(maxsize=4)
+    def _stored(self, si: int):
+        from sensor import read_spikes
+        folder = self.seqs[si].folder
+        p = Path(self.spikes_name)
+        p = p if p.is_absolute() else folder / p
+        s, meta = read_spikes(p)
+        ch, cw = self.crop
+        return s[:, self.top:self.top + ch, self.left:self.left + cw], meta
+
+    def sample(self, i: int) -> Sample:
+        from sensor import interval_rates
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        si, m0 = self.items[i]
+        rate_kf, t_s = self._rates(si)
+        _, sim_seed = _children(item_seed_sequence(self.seed, self.kind, self.epoch, i))
+        if self.spikes_name:
+            stored, meta_s = self._stored(si)
+            if stored.shape[0] < m0 + self.L:
+                raise InputError(f"stored spikes hold {stored.shape[0]} intervals; item needs up to {m0 + self.L}",
+                                 path=self.seqs[si].folder / self.spikes_name)
+            spikes = stored[m0:m0 + self.L]
+            lam_c = interval_rates(rate_kf, t_s, n_intervals=1, m0=m0 + self.L // 2,
+                                   interval_s=self.profile.interval_s)[0]
+            meta = {"folder": str(self.seqs[si].folder), "m0": m0, "stored": True, "model": meta_s.get("model")}
+        else:
+            lam = interval_rates(rate_kf, t_s, n_intervals=self.warmup + self.L, m0=m0,
+                                 interval_s=self.profile.interval_s)
+            spikes = self._simulate(lam, self.profile, sim_seed)
+            lam_c = lam[self.warmup + self.L // 2]
+            meta = {"folder": str(self.seqs[si].folder), "m0": m0 + self.warmup, "model": self.model,
+                    "sim_seed": sim_seed}
+        return self._finish(spikes, lam_c, self.profile, f"{self.seqs[si].folder.name}@{meta['m0']}", meta)
+
+
+# ------------------------------------------------------------------------------------------------------- SDMD
+REFERENCE_NAMES = ("reference.png", "reference.tif", "reference.tiff", "reference.exr", "reference.npy")
+
+
+class SDMDDataset(_Base):
+    """SDMD-style real pairs: one folder per scene under ROOT.
+
+    Layout::
+
+        ROOT/split.json                 {"train": [scene, ...], "test": [scene, ...]}  (80 / 20 in SDMD)
+        ROOT/<scene>/spikes.dat         SpikeCV .dat (see sensor.spikefile), H x W per frame
+        ROOT/<scene>/reference.png      aligned reference (or .tif/.tiff/.exr/.npy)
+        ROOT/<scene>/meta.json          optional: {"lux": 3.1, "height": 250, "width": 400,
+                                                   "drop_columns": 0, "transfer": "srgb"|"linear",
+                                                   "spikes_per_ref_unit": 0.05, "center": 2000}
+
+    The spikes nearest the recording's centre (or ``meta.center``) give the
+    ``L`` intervals of the item. The reference is decoded to linear luminance
+    (:func:`recon.imageio.read_reference`) and converted to ideal spikes per
+    interval with one factor per scene: ``meta.spikes_per_ref_unit`` when given
+    (a calibration), else ``mean(TFP of the whole recording) /
+    mean(reference)`` (the long-exposure TFP fixes the exposure; one scalar per
+    scene, identical for every method). The TFP of the whole recording still
+    holds dark spikes, so that fallback is a coarse exposure match; document
+    your calibration in ``meta.json`` when you have one.
+
+    ``profile`` (a calibrated profile of the camera) supplies the sensor maps
+    and the dead-time-corrected TFP; without it the maps are "unknown" (dark 0,
+    gain 1) and tfp-dt uses the default synthetic sensor.
+    """
+
+    kind = "sdmd"
+
+    def __init__(self, root, split: str = "test", *, height: int = 250, width: int = 400, drop_columns: int = 0,
+                 profile=None, split_file=None, **kw):
+        super().__init__(**kw)
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise InputError("SDMD folder does not exist", path=self.root)
+        present = sorted(p.name for p in self.root.iterdir() if p.is_dir() and (p / "spikes.dat").is_file())
+        if not present:
+            raise InputError("no scene folders with spikes.dat inside (see docs/recon.md, SDMD layout)",
+                             path=self.root)
+        self.split = split
+        sf = Path(split_file) if split_file else self.root / "split.json"
+        if split != "all" and not sf.is_file():
+            raise InputError(f"no split file for split '{split}' (use split=all or add split.json)", path=sf)
+        self.scenes = _select_split(present, split, sf, self.root)
+        self.height, self.width, self.drop = int(height), int(width), int(drop_columns)
+        self.profile_spec = profile
+        self.items = list(self.scenes)
+
+    def _scene_meta(self, scene: str) -> dict:
+        p = self.root / scene / "meta.json"
+        if not p.is_file():
+            return {}
+        try:
+            return json.loads(p.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(f"invalid JSON ({exc})", path=p) from exc
+
+    def sample(self, i: int) -> Sample:
+        from sensor import read_dat
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        scene = self.items[i]
+        meta = self._scene_meta(scene)
+        H = int(meta.get("height", self.height))
+        W = int(meta.get("width", self.width))
+        drop = int(meta.get("drop_columns", self.drop))
+        dat = self.root / scene / "spikes.dat"
+        allspikes = read_dat(dat, H, W, drop_columns=drop)
+        T = allspikes.shape[0]
+        if T < self.L:
+            raise InputError(f"recording has {T} intervals; an item needs {self.L}", path=dat)
+        c = int(meta.get("center", T // 2))
+        start = max(0, min(c - self.L // 2, T - self.L))
+        spikes = allspikes[start:start + self.L]
+        ref_path = next((self.root / scene / n for n in REFERENCE_NAMES if (self.root / scene / n).is_file()), None)
+        if ref_path is None:
+            raise InputError(f"no reference image ({', '.join(REFERENCE_NAMES)})", path=self.root / scene)
+        ref = read_reference(ref_path, meta.get("transfer"))
+        Wd = W - drop
+        if ref.shape != (H, Wd):
+            raise InputError(f"reference is {ref.shape[0]}x{ref.shape[1]} but the spikes are {H}x{Wd}",
+                             path=ref_path)
+        if "spikes_per_ref_unit" in meta:
+            factor = float(meta["spikes_per_ref_unit"])
+        else:
+            factor = float(tfp(allspikes).mean()) / max(float(ref.mean()), 1e-12)
+        prof = None if self.profile_spec in (None, "") else resolve_profile(self.profile_spec, H, Wd, self.seed)
+        maps = sensor_maps(prof) if prof is not None else np.stack([np.zeros((H, Wd)), np.ones((H, Wd))]).astype(
+            np.float32)
+        c_local = c - start
+        windows = tfp_windows(spikes, self.n_windows, self.window, center=c_local)
+        target = (ref * np.float32(factor))[None].astype(np.float32)
+        return Sample(windows=windows, target=target, maps=maps,
+                      spikes=spikes if self.include_spikes else None, center=c_local,
+                      profile=prof or resolve_profile(None, H, Wd, self.seed), name=scene,
+                      meta={"scene": scene, "lux": meta.get("lux"), "spikes_per_ref_unit": factor,
+                            "profile_given": prof is not None, "window": self.window, "n_windows": self.n_windows})

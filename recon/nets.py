@@ -1,0 +1,490 @@
+"""RSIR-architecture recurrent reconstruction network (PyTorch).
+
+Follows the architecture of RSIR (Zhu et al., "Recurrent Spike-based Image
+Restoration under General Illumination", ACM MM 2023); see ``docs/recon.md``
+for the layout and every deviation. Written from the paper's description;
+no code was copied.
+
+Input: ``windows`` float (B, N, H, W), N = 10 TFP windows of 32 intervals
+(M = 320), in **spikes per interval**; optional per-pixel sensor ``maps``
+(B, 2, H, W): the dark-event probability per interval (``1 - exp(-mu_DC)``)
+and the PRNU gain (dimensionless). Output: the clean intensity at the centre
+of the M intervals in the dataset's target unit (``rate_e / threshold_e``,
+"ideal spikes per interval"; see :mod:`recon.datasets`).
+
+Per recurrent step t (one TFP window):
+
+1. noise-inverse module (NIM): per-pixel MLP on the window and the maps;
+2. Haar wavelet decomposition of the NIM output and of the previous fused
+   image (step 0: the NIM output itself);
+3. temporal fusion: a mask from the two LL bands blends previous and current;
+4. denoiser: residual blocks plus windowed self-attention on the fused bands;
+5. refine: a mask blends denoised and fused bands; inverse Haar transform.
+
+The fused image feeds the next step. Losses apply to every step
+(:func:`rsir_loss`).
+
+Kornia-style pairs: :func:`haar_dwt` / :class:`HaarDWT`, :func:`haar_idwt` /
+:class:`HaarIDWT`, :func:`window_partition` / :func:`window_reverse` with
+:class:`WindowAttention`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from sensor.errors import DependencyError, InputError
+
+try:
+    import torch
+    import torch.nn.functional as F
+    from torch import nn
+except ImportError as exc:  # pragma: no cover - exercised only without torch
+    raise DependencyError("the RSIR network needs PyTorch: pip install 'render2spike[recon]' "
+                          "(or pip install torch==2.13.0)") from exc
+
+
+# ----------------------------------------------------------------------------------------------- shape checks
+def _check_4d(x, name: str, channels: int | None = None, even: bool = False):
+    if not isinstance(x, torch.Tensor):
+        raise InputError(f"{name} must be a torch.Tensor, got {type(x).__name__}", field=name)
+    if x.dim() != 4:
+        raise InputError(f"{name} must be (B, C, H, W); got shape {tuple(x.shape)}", field=name)
+    if channels is not None and x.shape[1] != channels:
+        raise InputError(f"{name} must have {channels} channels; got shape {tuple(x.shape)}", field=name)
+    if even and (x.shape[-1] % 2 or x.shape[-2] % 2):
+        raise InputError(f"{name} needs even height and width for the Haar transform; got "
+                         f"{x.shape[-2]}x{x.shape[-1]} (pad first)", field=name)
+
+
+# ------------------------------------------------------------------------------------------------ Haar wavelets
+def haar_dwt(x: "torch.Tensor") -> "torch.Tensor":
+    """One level of the orthonormal 2-D Haar transform.
+
+    Parameters
+    ----------
+    x : Tensor (B, C, H, W), H and W even.
+
+    Returns
+    -------
+    Tensor (B, 4C, H/2, W/2)
+        Bands stacked band-major: ``[LL, HL, LH, HH]``, each C channels.
+        With ``a, b`` the top-left/top-right and ``c, d`` the bottom-left/right
+        pixels of each 2x2 block: LL = (a+b+c+d)/2, HL = (a-b+c-d)/2
+        (horizontal differences), LH = (a+b-c-d)/2 (vertical differences),
+        HH = (a-b-c+d)/2. Orthonormal: :func:`haar_idwt` inverts it exactly.
+    """
+    _check_4d(x, "x", even=True)
+    a, b = x[..., 0::2, 0::2], x[..., 0::2, 1::2]
+    c, d = x[..., 1::2, 0::2], x[..., 1::2, 1::2]
+    return torch.cat([(a + b + c + d), (a - b + c - d), (a + b - c - d), (a - b - c + d)], dim=1) * 0.5
+
+
+def haar_idwt(y: "torch.Tensor") -> "torch.Tensor":
+    """Inverse of :func:`haar_dwt`: (B, 4C, h, w) -> (B, C, 2h, 2w)."""
+    _check_4d(y, "y")
+    if y.shape[1] % 4:
+        raise InputError(f"y must have 4C channels (LL, HL, LH, HH); got {y.shape[1]}", field="y")
+    ll, hl, lh, hh = torch.chunk(y, 4, dim=1)
+    B, C, h, w = ll.shape
+    out = y.new_empty(B, C, 2 * h, 2 * w)
+    out[..., 0::2, 0::2] = (ll + hl + lh + hh) * 0.5
+    out[..., 0::2, 1::2] = (ll - hl + lh - hh) * 0.5
+    out[..., 1::2, 0::2] = (ll + hl - lh - hh) * 0.5
+    out[..., 1::2, 1::2] = (ll - hl - lh + hh) * 0.5
+    return out
+
+
+class HaarDWT(nn.Module):
+    """Module form of :func:`haar_dwt`."""
+
+    def forward(self, x):
+        return haar_dwt(x)
+
+
+class HaarIDWT(nn.Module):
+    """Module form of :func:`haar_idwt`."""
+
+    def forward(self, y):
+        return haar_idwt(y)
+
+
+# ---------------------------------------------------------------------------------------- windowed attention
+def window_partition(x: "torch.Tensor", window: int) -> "torch.Tensor":
+    """(B, H, W, C) -> (B * H/w * W/w, w*w, C): non-overlapping windows of ``window`` x ``window`` pixels."""
+    B, H, W, C = x.shape
+    if H % window or W % window:
+        raise InputError(f"feature map {H}x{W} is not a multiple of the attention window {window}", field="window")
+    x = x.view(B, H // window, window, W // window, window, C)
+    return x.permute(0, 1, 3, 2, 4, 5).reshape(-1, window * window, C)
+
+
+def window_reverse(windows: "torch.Tensor", window: int, H: int, W: int) -> "torch.Tensor":
+    """Inverse of :func:`window_partition`: (B * nW, w*w, C) -> (B, H, W, C)."""
+    C = windows.shape[-1]
+    B = windows.shape[0] // ((H // window) * (W // window))
+    x = windows.view(B, H // window, W // window, window, window, C)
+    return x.permute(0, 1, 3, 2, 4, 5).reshape(B, H, W, C)
+
+
+def _shift_mask(H: int, W: int, window: int, shift: int, device) -> "torch.Tensor":
+    """Additive attention mask (nW, w*w, w*w) that keeps shifted windows from mixing wrapped-around regions."""
+    img = torch.zeros(1, H, W, 1, device=device)
+    cnt = 0
+    for hs in (slice(0, -window), slice(-window, -shift), slice(-shift, None)):
+        for ws in (slice(0, -window), slice(-window, -shift), slice(-shift, None)):
+            img[:, hs, ws, :] = cnt
+            cnt += 1
+    win = window_partition(img, window).squeeze(-1)
+    diff = win[:, None, :] - win[:, :, None]
+    return torch.zeros_like(diff).masked_fill(diff != 0, float("-inf"))
+
+
+class WindowAttention(nn.Module):
+    """Multi-head self-attention inside ``window`` x ``window`` windows, with a learned relative position bias.
+
+    Input and output (B*nW, w*w, C); ``mask`` (nW, w*w, w*w) additive, optional.
+    """
+
+    def __init__(self, dim: int, heads: int, window: int):
+        super().__init__()
+        if dim % heads:
+            raise InputError(f"attention width {dim} is not divisible by {heads} heads", field="heads")
+        self.dim, self.heads, self.window = dim, heads, window
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.proj = nn.Linear(dim, dim)
+        self.bias_table = nn.Parameter(torch.zeros((2 * window - 1) ** 2, heads))
+        nn.init.trunc_normal_(self.bias_table, std=0.02)
+        coords = torch.stack(torch.meshgrid(torch.arange(window), torch.arange(window), indexing="ij")).flatten(1)
+        rel = (coords[:, :, None] - coords[:, None, :]).permute(1, 2, 0) + (window - 1)
+        self.register_buffer("bias_index", rel[..., 0] * (2 * window - 1) + rel[..., 1], persistent=False)
+
+    def forward(self, x, mask=None):
+        Bw, N, C = x.shape
+        qkv = self.qkv(x).view(Bw, N, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
+        q, k, v = qkv[0], qkv[1], qkv[2]
+        bias = self.bias_table[self.bias_index.reshape(-1)].view(N, N, self.heads).permute(2, 0, 1)
+        attn_bias = bias.unsqueeze(0)
+        if mask is not None:
+            nW = mask.shape[0]
+            attn_bias = (attn_bias.unsqueeze(0) + mask[None, :, None]).expand(Bw // nW, nW, self.heads, N, N)
+            attn_bias = attn_bias.reshape(Bw, self.heads, N, N)
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_bias.to(q.dtype))
+        return self.proj(out.transpose(1, 2).reshape(Bw, N, C))
+
+
+class AttentionBlock(nn.Module):
+    """Swin-style block on (B, C, H, W): LayerNorm, (shifted) window attention, LayerNorm, MLP; both residual."""
+
+    def __init__(self, dim: int, heads: int, window: int, shift: int = 0, mlp_ratio: float = 2.0):
+        super().__init__()
+        self.window, self.shift = window, shift
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = WindowAttention(dim, heads, window)
+        self.norm2 = nn.LayerNorm(dim)
+        hidden = max(int(dim * mlp_ratio), 1)
+        self.mlp = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, dim))
+
+    def forward(self, x):
+        B, C, H, W = x.shape
+        t = x.permute(0, 2, 3, 1)
+        y = self.norm1(t)
+        shift = self.shift if min(H, W) > self.window else 0
+        if shift:
+            y = torch.roll(y, (-shift, -shift), dims=(1, 2))
+        mask = _shift_mask(H, W, self.window, shift, x.device) if shift else None
+        y = window_reverse(self.attn(window_partition(y, self.window), mask), self.window, H, W)
+        if shift:
+            y = torch.roll(y, (shift, shift), dims=(1, 2))
+        t = t + y
+        t = t + self.mlp(self.norm2(t))
+        return t.permute(0, 3, 1, 2)
+
+
+# ----------------------------------------------------------------------------------------------- components
+class ResidualBlock(nn.Module):
+    """Two 3x3 convolutions with LeakyReLU(0.2) plus a 1x1 projection skip (RSIR's residual block)."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.LeakyReLU(0.2),
+                                  nn.Conv2d(cout, cout, 3, padding=1), nn.LeakyReLU(0.2))
+        self.skip = nn.Conv2d(cin, cout, 1)
+
+    def forward(self, x):
+        return self.body(x) + self.skip(x)
+
+
+def _mask_net(cin: int, width: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, width, 3, padding=1), nn.ReLU(), nn.Conv2d(width, width, 3, padding=1),
+                         nn.ReLU(), nn.Conv2d(width, 1, 3, padding=1), nn.Sigmoid())
+
+
+class NoiseInverse(nn.Module):
+    """Noise-inverse module: per-pixel MLP (1x1 convolutions) correcting one TFP window with the sensor maps.
+
+    Input: window (B, 1, H, W) and features of the maps (B, n_maps, H, W), all
+    in the network's scaled units. Output (B, 1, H, W): the window plus a
+    learned per-pixel correction (last layer initialised to zero, so the
+    module starts as the identity).
+    """
+
+    def __init__(self, n_maps: int = 2, width: int = 16):
+        super().__init__()
+        self.net = nn.Sequential(nn.Conv2d(1 + n_maps, width, 1), nn.LeakyReLU(0.1), nn.Conv2d(width, width, 1),
+                                 nn.LeakyReLU(0.1), nn.Conv2d(width, 1, 1))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, x, maps):
+        return x + self.net(torch.cat([x, maps], dim=1))
+
+
+class TemporalFusion(nn.Module):
+    """Blend previous and current wavelet bands with a mask computed from their LL bands.
+
+    ``fused = prev * (1 - m) + cur * m``, ``m = sigmoid(CNN([LL_prev, LL_cur]))``, shape (B, 1, h, w).
+    """
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.mask = _mask_net(2, width)
+
+    def forward(self, prev, cur):
+        m = self.mask(torch.cat([prev[:, :1], cur[:, :1]], dim=1))
+        return prev * (1 - m) + cur * m, m
+
+
+class Denoiser(nn.Module):
+    """Residual blocks, then windowed self-attention blocks (alternately shifted), then a 3x3 conv to 4 bands.
+
+    Predicts a residual added to the fused bands (see docs/recon.md, deviations).
+    """
+
+    def __init__(self, width: int = 16, res_blocks: int = 2, attn_depth: int = 2, heads: int = 2,
+                 window: int = 8, mlp_ratio: float = 2.0):
+        super().__init__()
+        blocks = [ResidualBlock(4, width)] + [ResidualBlock(width, width) for _ in range(max(res_blocks - 1, 0))]
+        self.res = nn.Sequential(*blocks)
+        self.attn = nn.Sequential(*[AttentionBlock(width, heads, window, shift=(window // 2) * (i % 2),
+                                                   mlp_ratio=mlp_ratio) for i in range(attn_depth)])
+        self.out = nn.Conv2d(width, 4, 3, padding=1)
+
+    def forward(self, bands):
+        return bands + self.out(self.attn(self.res(bands)))
+
+
+class Refine(nn.Module):
+    """``refined = denoised * (1 - w) + fused * w`` with ``w = sigmoid(CNN([fused, denoised]))``."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.mask = _mask_net(8, width)
+
+    def forward(self, fused, denoised):
+        w = self.mask(torch.cat([fused, denoised], dim=1))
+        return denoised * (1 - w) + fused * w
+
+
+# ------------------------------------------------------------------------------------------------ the network
+@dataclass
+class RSIRConfig:
+    """Width and depth of the network; the tiny defaults of :meth:`tiny` train on a CPU in minutes.
+
+    ``intensity_scale`` multiplies inputs (spikes per interval) before the
+    network and divides its outputs, so the network works on values of order
+    one at any light level; training sets it from the training data
+    (:func:`recon.train.estimate_intensity_scale`) and stores it in the
+    checkpoint.
+    """
+
+    n_windows: int = 10
+    window: int = 32
+    width: int = 32
+    res_blocks: int = 4
+    attn_depth: int = 2
+    heads: int = 4
+    attn_window: int = 8
+    mlp_ratio: float = 2.0
+    nim_width: int = 16
+    mask_width: int = 16
+    n_maps: int = 2
+    intensity_scale: float = 1.0
+    nim_loss_weight: float = 1.0
+
+    @classmethod
+    def tiny(cls, **kw) -> "RSIRConfig":
+        base = dict(width=16, res_blocks=2, attn_depth=2, heads=2, attn_window=8, nim_width=16, mask_width=16)
+        base.update(kw)
+        return cls(**base)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RSIRConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise InputError(f"unknown network settings {unknown}; valid: {sorted(names)}", field="config")
+        return cls(**d)
+
+
+class RSIRNet(nn.Module):
+    """The recurrent RSIR-architecture network; see the module docstring.
+
+    ``forward(windows, maps=None)`` returns a dict of per-step lists
+    (``nim``, ``fusion``, ``denoise``, ``refine``: (B, 1, H, W) in target units;
+    ``denoise_bands``: (B, 4, H'/2, W'/2) in scaled units on the padded grid)
+    and ``output`` = the last step's ``refine``.
+    """
+
+    def __init__(self, config: RSIRConfig | None = None):
+        super().__init__()
+        self.config = cfg = config or RSIRConfig()
+        self.nim = NoiseInverse(cfg.n_maps, cfg.nim_width)
+        self.dwt, self.idwt = HaarDWT(), HaarIDWT()
+        self.fusion = TemporalFusion(cfg.mask_width)
+        self.denoiser = Denoiser(cfg.width, cfg.res_blocks, cfg.attn_depth, cfg.heads, cfg.attn_window,
+                                 cfg.mlp_ratio)
+        self.refine = Refine(cfg.mask_width)
+
+    @property
+    def multiple(self) -> int:
+        """Height and width are padded to a multiple of this (Haar halving times the attention window)."""
+        return 2 * self.config.attn_window
+
+    def pad_amounts(self, H: int, W: int) -> tuple[int, int]:
+        m = self.multiple
+        return (-H) % m, (-W) % m
+
+    def _pad(self, x):
+        ph, pw = self.pad_amounts(x.shape[-2], x.shape[-1])
+        return F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+
+    def map_features(self, maps, like):
+        """Network features of the sensor maps: dark spikes per interval (scaled) and PRNU gain - 1."""
+        B, _, H, W = like.shape
+        if maps is None:
+            return like.new_zeros(B, self.config.n_maps, H, W)
+        _check_4d(maps, "maps", channels=self.config.n_maps)
+        if maps.shape[0] != B or maps.shape[-2:] != like.shape[-2:]:
+            raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(like.shape)}", field="maps")
+        feats = maps.to(like.dtype).clone()
+        feats[:, 0] = feats[:, 0] * self.config.intensity_scale
+        if self.config.n_maps > 1:
+            feats[:, 1] = feats[:, 1] - 1.0
+        return feats
+
+    def forward(self, windows, maps=None):
+        cfg = self.config
+        _check_4d(windows, "windows", channels=cfg.n_windows)
+        H, W = windows.shape[-2:]
+        s = cfg.intensity_scale
+        x = self._pad(windows * s)
+        feats = self._pad(self.map_features(maps, windows))
+        out = {"nim": [], "fusion": [], "denoise": [], "refine": [], "denoise_bands": []}
+        prev = None
+        for t in range(cfg.n_windows):
+            cur_img = self.nim(x[:, t:t + 1], feats)
+            cur = self.dwt(cur_img)
+            prev = cur if prev is None else prev
+            fused, _ = self.fusion(prev, cur)
+            denoised = self.denoiser(fused)
+            refined = self.refine(fused, denoised)
+            for key, v in (("nim", cur_img), ("fusion", self.idwt(fused)), ("denoise", self.idwt(denoised)),
+                           ("refine", self.idwt(refined))):
+                out[key].append(v[..., :H, :W] / s)
+            out["denoise_bands"].append(denoised)
+            prev = fused
+        out["output"] = out["refine"][-1]
+        return out
+
+    @torch.no_grad()
+    def reconstruct(self, windows, maps=None):
+        """Inference: the final image (B, 1, H, W) in target units."""
+        return self.forward(windows, maps)["output"]
+
+
+def rsir_loss(model: RSIRNet, out: dict, target):
+    """Loss on every step (L1, in the network's scaled units), averaged over the steps.
+
+    Per step: |refine - y| + |fusion - y| + |denoise - y| + sum over the four
+    Haar bands of |denoise_band - y_band| + nim_loss_weight * |nim - y|,
+    each a mean over pixels. Returns (loss, dict of the mean components).
+    """
+    _check_4d(target, "target", channels=1)
+    s = model.config.intensity_scale
+    y = target * s
+    yb = model.dwt(model._pad(y))
+    n = len(out["refine"])
+    parts = {"refine": 0.0, "fusion": 0.0, "denoise": 0.0, "bands": 0.0, "nim": 0.0}
+    for t in range(n):
+        parts["refine"] = parts["refine"] + F.l1_loss(out["refine"][t] * s, y)
+        parts["fusion"] = parts["fusion"] + F.l1_loss(out["fusion"][t] * s, y)
+        parts["denoise"] = parts["denoise"] + F.l1_loss(out["denoise"][t] * s, y)
+        parts["bands"] = parts["bands"] + sum(F.l1_loss(out["denoise_bands"][t][:, i], yb[:, i]) for i in range(4))
+        parts["nim"] = parts["nim"] + F.l1_loss(out["nim"][t] * s, y)
+    total = (parts["refine"] + parts["fusion"] + parts["denoise"] + parts["bands"]
+             + model.config.nim_loss_weight * parts["nim"]) / n
+    return total, {k: float(v.detach() if hasattr(v, "detach") else v) / n for k, v in parts.items()}
+
+
+# ----------------------------------------------------------------------------------------------- checkpoints
+CHECKPOINT_FORMAT = "render2spike-rsir-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+def pick_device(name: str = "auto") -> "torch.device":
+    """'auto' -> CUDA when available, else CPU; or an explicit torch device name."""
+    if name in (None, "", "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:
+        raise InputError(f"unknown device '{name}' (use auto, cpu or cuda)", field="device") from exc
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("CUDA was requested but no CUDA device is available", field="device")
+    return dev
+
+
+def save_checkpoint(path, model: RSIRNet, optimizer=None, *, step: int = 0, extra: dict | None = None):
+    """Write model (and optimizer) state with the network config, atomically (torch.save format)."""
+    from pathlib import Path
+
+    from sensor.fileio import atomic_path, provenance
+    state = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": model.config.to_dict(),
+             "model": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "step": int(step),
+             "provenance": provenance()}
+    if optimizer is not None:
+        state["optimizer"] = optimizer.state_dict()
+    state.update(extra or {})
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+    return path
+
+
+def load_checkpoint(path, device="cpu"):
+    """Read a checkpoint: returns (RSIRNet on ``device`` in eval mode, the checkpoint dict)."""
+    from pathlib import Path
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("checkpoint file does not exist", path=path)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise InputError(f"not a readable PyTorch checkpoint ({exc})", path=path) from exc
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(f"not a render2spike RSIR checkpoint (format '{ckpt.get('format') if isinstance(ckpt, dict) else type(ckpt).__name__}', "
+                         f"expected '{CHECKPOINT_FORMAT}')", path=path, field="format")
+    if int(ckpt.get("version", 0)) > CHECKPOINT_VERSION:
+        raise InputError(f"checkpoint version {ckpt['version']} is newer than this reader ({CHECKPOINT_VERSION})",
+                         path=path, field="version")
+    model = RSIRNet(RSIRConfig.from_dict(ckpt["config"]))
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as exc:
+        raise InputError(f"weights do not fit the stored network config ({exc})", path=path, field="model") from exc
+    dev = pick_device(device) if isinstance(device, str) else device
+    return model.to(dev).eval(), ckpt

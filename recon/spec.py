@@ -1,0 +1,131 @@
+"""The ``--data SPEC`` syntax of ``render2spike train`` / ``evaluate``.
+
+::
+
+    KIND:PATH[,PATH...][:KEY=VALUE[:KEY=VALUE...]]
+
+``KIND`` is ``davis``, ``sdmd`` or ``rendered``. After the first colon, the
+colon-separated tokens that look like ``key=value`` (key a known option) are
+options; the rest, rejoined with ``:``, is the comma-separated path list
+(``rendered`` takes several frames folders; ``davis`` and ``sdmd`` one root).
+
+Examples::
+
+    davis:/data/DAVIS:split=train:crop=64x64:lux=5-50
+    davis:/data/DAVIS:split=test:res=250x400
+    sdmd:/data/SDMD:split=test:profile=my-vidar.npz
+    rendered:runs/scene1/frames,runs/scene2/frames:crop=128x128:model=isi
+
+Options (all kinds)
+-------------------
+``split``       train | test | all (default: train for ``train``, test for ``evaluate``)
+``profile``     sensor profile name/path, or ``synthetic`` (default; vidar-like, see recon.datasets)
+``model``       spike model (elssim | ideal | isi); overrides ``--noise-model``
+``seed``        dataset seed (int)
+``intervals``   intervals kept per item (>= 320; more lets ``tfp:N`` use a longer window)
+``warmup``      simulated intervals dropped before each item (default 64)
+``max_items``   use at most this many items
+``crop``        HxW patch per item (davis: random offset in training; rendered: centre)
+
+``davis`` only: ``res`` (HxW sensor resolution, default the profile's or
+250x400), ``lux`` (scene illuminance: a value or LO-HI, log-uniform per
+training item, geometric mean for test items; default 5-50), ``ipf``
+(intervals per video frame, default 160), ``frame_stride`` (default 4),
+``f_number`` (2.0), ``transmission`` (0.9), ``kelvin`` (5000),
+``split_file`` (default the shipped DAVIS-2017 85/5 split).
+
+``rendered`` only: ``stride`` (intervals between items), ``spikes`` (stored
+spike file inside each folder).
+
+``sdmd`` only: ``height``, ``width``, ``drop_columns`` (.dat layout; defaults
+250, 400, 0; per-scene meta.json overrides), ``split_file`` (default
+ROOT/split.json).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from sensor.errors import InputError, UnknownMethodError
+
+KINDS = ("davis", "sdmd", "rendered")
+COMMON = {"split": str, "profile": str, "model": str, "seed": int, "intervals": int, "warmup": int,
+          "max_items": int, "crop": "hw"}
+PER_KIND = {
+    "davis": {"res": "hw", "lux": "range", "ipf": int, "frame_stride": int, "f_number": float,
+              "transmission": float, "kelvin": float, "split_file": str},
+    "rendered": {"stride": int, "spikes": str},
+    "sdmd": {"height": int, "width": int, "drop_columns": int, "split_file": str},
+}
+
+
+@dataclass
+class DataSpec:
+    kind: str
+    paths: list[str]
+    options: dict = field(default_factory=dict)
+    text: str = ""
+
+
+def _convert(key, value, typ):
+    from .datasets import parse_hw
+    try:
+        if typ == "hw":
+            return parse_hw(value, key)
+        if typ == "range":
+            if "-" in value.strip("-"):
+                lo, hi = value.split("-", 1)
+                return float(lo), float(hi)
+            return float(value)
+        return typ(value)
+    except ValueError:
+        raise InputError(f"bad value '{value}' for option '{key}'", field="--data") from None
+
+
+def parse_data_spec(text: str) -> DataSpec:
+    """Parse ``KIND:PATH[,PATH...][:KEY=VALUE...]`` (see the module docstring)."""
+    if ":" not in text:
+        raise InputError(f"data spec '{text}' must look like KIND:PATH[:key=value...] with KIND one of "
+                         f"{', '.join(KINDS)}", field="--data")
+    kind, rest = text.split(":", 1)
+    kind = kind.strip().lower()
+    if kind not in KINDS:
+        raise UnknownMethodError("data kind", kind, KINDS)
+    valid = dict(COMMON, **PER_KIND[kind])
+    opts, path_tokens = {}, []
+    for tok in rest.split(":"):
+        key, sep, value = tok.partition("=")
+        if sep and key.replace("_", "").isalnum() and "/" not in key and "," not in key:
+            if key not in valid:
+                raise InputError(f"unknown option '{key}' for {kind} data; valid: {', '.join(sorted(valid))}",
+                                 field="--data")
+            opts[key] = _convert(key, value, valid[key])
+        else:
+            path_tokens.append(tok)
+    path_text = ":".join(path_tokens)
+    paths = [p for p in path_text.split(",") if p]
+    if not paths:
+        raise InputError(f"data spec '{text}' names no path", field="--data")
+    if kind != "rendered" and len(paths) > 1:
+        raise InputError(f"{kind} data takes one root folder, got {len(paths)} paths", field="--data")
+    return DataSpec(kind, paths, opts, text)
+
+
+def build_dataset(spec: DataSpec | str, *, split: str | None = None, model: str | None = None,
+                  seed: int | None = None, include_spikes: bool = False, implementation: str = "fast"):
+    """Instantiate the dataset a spec describes. Spec options win over the keyword defaults."""
+    from . import datasets as D
+    if isinstance(spec, str):
+        spec = parse_data_spec(spec)
+    o = dict(spec.options)
+    common = dict(model=o.pop("model", model or "elssim"), seed=o.pop("seed", 0 if seed is None else seed),
+                  intervals=o.pop("intervals", None), warmup=o.pop("warmup", 64),
+                  max_items=o.pop("max_items", None), include_spikes=include_spikes, implementation=implementation)
+    split = o.pop("split", split or "test")
+    if spec.kind == "davis":
+        return D.DavisDataset(spec.paths[0], split, **o, **common)
+    if spec.kind == "sdmd":
+        if "crop" in o:
+            raise InputError("crop is not supported for sdmd data (scenes are used whole)", field="--data")
+        return D.SDMDDataset(spec.paths[0], split, **o, **common)
+    return D.RenderedDataset(spec.paths, **o, **common)

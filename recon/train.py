@@ -1,0 +1,276 @@
+"""Training loop of the RSIR-architecture network: checkpoints, resume, loss curve (CSV + PNG), progress bar.
+
+Run directory layout::
+
+    RUN_DIR/config.json              data spec, noise model, network and training settings, provenance
+    RUN_DIR/checkpoints/last.pt      latest state (model, optimizer, step); --resume continues from it
+    RUN_DIR/model.pt                 the final model (same format) when training ends
+    RUN_DIR/loss.csv                 step, epoch, loss and its parts, learning rate, elapsed seconds
+    RUN_DIR/loss.png                 the loss curve
+
+Determinism: batch order of epoch ``e`` comes from
+``SeedSequence(seed, spawn_key=(100, e))`` and every item draws its crop,
+light level and noise from its own SeedSequence (``recon.datasets``), so a
+resumed run sees exactly the batches the uninterrupted run would have seen
+(network weights then agree up to floating-point nondeterminism of the
+kernels).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from sensor.errors import InputError
+from sensor.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
+
+LOSS_FIELDS = ["step", "epoch", "loss", "refine", "fusion", "denoise", "bands", "nim", "lr", "elapsed_s"]
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation settings. ``steps`` optimiser steps of ``batch_size`` items each."""
+
+    steps: int = 2000
+    batch_size: int = 4
+    lr: float = 1e-3
+    lr_final_fraction: float = 0.1
+    checkpoint_every: int = 100
+    log_every: int = 10
+    seed: int = 0
+    workers: int = 0
+    max_minutes: float | None = None
+    device: str = "auto"
+    threads: int | None = None
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+def collate(items: list[dict]):
+    """List of training dicts -> dict of float32 tensors (B, ...)."""
+    import torch
+    return {k: torch.from_numpy(np.stack([it[k] for it in items]).astype(np.float32)) for k in items[0]}
+
+
+def estimate_intensity_scale(dataset, n: int = 8) -> float:
+    """0.5 / mean target of the first ``n`` items: makes the network's typical values ~0.5."""
+    n = min(n, len(dataset))
+    m = float(np.mean([dataset[i]["target"].mean() for i in range(n)]))
+    if not m > 0:
+        raise InputError("the training targets are all zero (no light?); cannot set the intensity scale",
+                         field="--data")
+    return 0.5 / m
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Cosine decay from ``lr`` to ``lr * lr_final_fraction`` over ``steps``."""
+    t = min(max(step / max(cfg.steps, 1), 0.0), 1.0)
+    return cfg.lr * (cfg.lr_final_fraction + (1 - cfg.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def epoch_order(seed: int, epoch: int, n: int) -> np.ndarray:
+    """The item order of one epoch."""
+    ss = np.random.SeedSequence(int(seed), spawn_key=(100, int(epoch)))
+    return np.random.Generator(np.random.PCG64(ss)).permutation(n)
+
+
+def read_loss_csv(path) -> list[dict]:
+    path = Path(path)
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
+    """loss.csv and loss.png, atomically."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=LOSS_FIELDS)
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (int(r[k]) if k in ("step", "epoch") else f"{r[k]:.6g}") for k in LOSS_FIELDS})
+    write_text_atomic(out_dir / "loss.csv", buf.getvalue())
+    if not rows:
+        return
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    steps = [r["step"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    ax.plot(steps, [r["loss"] for r in rows], label="total (mean over steps)", lw=1)
+    ax.plot(steps, [r["refine"] for r in rows], label="refine L1", lw=1)
+    ax.set_xlabel("optimiser step")
+    ax.set_ylabel("loss (scaled units)")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(out_dir / "loss.png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None = None, resume: bool = False,
+          init_checkpoint=None, run_info: dict | None = None, progress: bool = True) -> dict:
+    """Train (or resume) an RSIR-architecture network on ``dataset``; returns a summary dict.
+
+    Parameters
+    ----------
+    dataset : recon.datasets dataset
+        Training items (``set_epoch`` is called each epoch).
+    out_dir : path
+        Run directory (layout in the module docstring).
+    net_config : RSIRConfig, optional
+        Network size; ``intensity_scale`` is estimated from the data unless
+        ``init_checkpoint`` or a resumed run supplies it.
+    train_config : TrainConfig
+    resume : bool
+        Continue from ``out_dir/checkpoints/last.pt``.
+    init_checkpoint : path, optional
+        Start from these weights (fine-tuning, e.g. on SDMD training pairs).
+    run_info : dict
+        Stored in config.json (data spec, noise model, command).
+    """
+    import torch
+    from tqdm import tqdm
+
+    from .nets import RSIRConfig, RSIRNet, load_checkpoint, pick_device, rsir_loss, save_checkpoint
+
+    out_dir = Path(out_dir)
+    cfg = train_config or TrainConfig()
+    ckpt_dir = out_dir / "checkpoints"
+    last = ckpt_dir / "last.pt"
+    device = pick_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    if len(dataset) == 0:
+        raise InputError("the training data hold no items", field="--data")
+
+    step, rows = 0, []
+    if resume:
+        if not last.is_file():
+            raise InputError("--resume: no checkpoints/last.pt in this run directory", path=out_dir)
+        model, ckpt = load_checkpoint(last, device)
+        step = int(ckpt["step"])
+        stored = json.loads((out_dir / "config.json").read_text()) if (out_dir / "config.json").is_file() else {}
+        if stored.get("train"):
+            old = TrainConfig.from_dict(stored["train"])
+            cfg = TrainConfig(**{**asdict(old), "steps": cfg.steps, "max_minutes": cfg.max_minutes,
+                                 "device": cfg.device, "workers": cfg.workers,
+                                 "threads": cfg.threads})
+        rows = [r for r in read_loss_csv(out_dir / "loss.csv") if r["step"] <= step]
+    else:
+        if last.is_file():
+            raise InputError("this run directory already holds a run; pass --resume to continue it or choose "
+                             "another --out", path=out_dir)
+        if init_checkpoint:
+            model, _ = load_checkpoint(init_checkpoint, device)
+        else:
+            nc = net_config or RSIRConfig.tiny()
+            if nc.intensity_scale == 1.0:
+                nc.intensity_scale = estimate_intensity_scale(dataset)
+            with torch.random.fork_rng(devices=[]):  # seeded weight init without touching the global generator
+                torch.manual_seed(int(cfg.seed))
+                model = RSIRNet(nc).to(device)
+        ckpt = None
+    model.train()
+    if dataset.n_windows != model.config.n_windows:
+        raise InputError(f"the data give {dataset.n_windows} windows but the network takes "
+                         f"{model.config.n_windows}", field="--data")
+    opt = torch.optim.Adam(model.parameters(), lr=lr_at(step, cfg))
+    if ckpt is not None and "optimizer" in ckpt:
+        opt.load_state_dict(ckpt["optimizer"])
+
+    info = {"format": "render2spike-train-run", "version": 1, "network": model.config.to_dict(),
+            "train": asdict(cfg), "device": str(device), "provenance": provenance()}
+    info.update(run_info or {})
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out_dir / "config.json", info)
+
+    n = len(dataset)
+    bs = min(cfg.batch_size, n)
+    per_epoch = n // bs
+    t0 = time.time()
+    elapsed0 = rows[-1]["elapsed_s"] if rows else 0.0
+    acc, acc_n = {}, 0
+    stopped_early = False
+    bar = tqdm(total=cfg.steps, initial=step, desc="train", unit="step", disable=not progress, dynamic_ncols=True)
+
+    def checkpoint():
+        save_checkpoint(last, model, opt, step=step, extra={"train": asdict(cfg), "run": run_info or {}})
+        write_loss_files(out_dir, rows)
+
+    try:
+        while step < cfg.steps:
+            epoch = step // per_epoch
+            dataset.set_epoch(epoch)
+            order = epoch_order(cfg.seed, epoch, n)
+            first = step % per_epoch
+            batches = [order[b * bs:(b + 1) * bs].tolist() for b in range(first, per_epoch)]
+            loader = _loader(dataset, batches, cfg.workers)
+            for batch in loader:
+                for g in opt.param_groups:
+                    g["lr"] = lr_at(step, cfg)
+                batch = {k: v.to(device) for k, v in batch.items()}
+                out = model(batch["windows"], batch["maps"])
+                loss, parts = rsir_loss(model, out, batch["target"])
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                step += 1
+                parts["loss"] = float(loss.detach())
+                for k, v in parts.items():
+                    acc[k] = acc.get(k, 0.0) + v
+                acc_n += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{parts['loss']:.4f}", epoch=epoch)
+                if step % cfg.log_every == 0 or step == cfg.steps:
+                    rows.append({"step": step, "epoch": epoch, **{k: v / acc_n for k, v in acc.items()},
+                                 "lr": lr_at(step, cfg), "elapsed_s": elapsed0 + time.time() - t0})
+                    acc, acc_n = {}, 0
+                if step % cfg.checkpoint_every == 0:
+                    checkpoint()
+                if cfg.max_minutes is not None and (time.time() - t0) > 60 * cfg.max_minutes:
+                    stopped_early = True
+                    break
+                if step >= cfg.steps:
+                    break
+            if stopped_early:
+                break
+    finally:
+        bar.close()
+    checkpoint()
+    final = out_dir / "model.pt"
+    save_checkpoint(final, model, None, step=step, extra={"train": asdict(cfg), "run": run_info or {}})
+    summary = {"steps_done": step, "steps_planned": cfg.steps, "stopped_early": stopped_early,
+               "final_loss": rows[-1]["loss"] if rows else None, "elapsed_s": elapsed0 + time.time() - t0,
+               "model": str(final), "intensity_scale": model.config.intensity_scale, "device": str(device)}
+    write_json_atomic(out_dir / "summary.json", summary)
+    return summary
+
+
+def _loader(dataset, batches, workers: int):
+    """Iterate collated batches; with ``workers`` > 0 through a torch DataLoader (items built in parallel)."""
+    if workers <= 0:
+        for b in batches:
+            yield collate([dataset[i] for i in b])
+        return
+    import torch
+    dl = torch.utils.data.DataLoader(dataset, batch_sampler=batches, num_workers=workers, collate_fn=collate,
+                                     worker_init_fn=_worker_init)
+    yield from dl
+
+
+def _worker_init(_):
+    import torch
+    torch.set_num_threads(1)
