@@ -137,23 +137,24 @@ if HAVE_NUMBA:
             return _NEVER
         return np.int64(g)
 
+    _INV = 1.0 / np.arange(1, 65, dtype=np.float64)
+
     @_jit_inline
     def _poisson(rng, lam):
-        """Poisson(lam): inversion for lam < 30 (one uniform), numpy's PTRS otherwise."""
+        """Poisson(lam): inversion (chop-down search, one uniform) for lam < 30, numpy's PTRS otherwise."""
         if lam <= 0.0:
             return 0.0
         if lam < 30.0:
             u = rng.random()
             p = math.exp(-lam)
-            f = p
-            x = 0.0
-            while u > f:
-                x += 1.0
-                p *= lam / x
+            x = 0
+            while u > p:
+                u -= p
+                x += 1
+                p *= lam * (_INV[x - 1] if x <= 64 else 1.0 / x)
                 if p == 0.0:
                     break
-                f += p
-            return x
+            return float(x)
         return float(rng.poisson(lam))
 
     @_jit_inline
@@ -168,6 +169,29 @@ if HAVE_NUMBA:
             sl += w[i, 2, r] * x
         return s, l0, sl
 
+    @_jit_inline
+    def _crossing(rp, A, beta, nmax):
+        """Smallest x in 1..nmax with C(x) = A x + beta x (x - 1) / 2 >= rp, or nmax + 1 when none.
+
+        C(x) is the expected count of x intervals whose lambda starts at A and grows by beta per
+        interval (lambda >= 0, so C increases with x).
+        """
+        if nmax * A + beta * 0.5 * nmax * (nmax - 1) < rp:
+            return nmax + 1
+        b2 = A - 0.5 * beta
+        if beta == 0.0:
+            x = math.ceil(rp / A) if A > 0.0 else nmax
+        else:
+            disc = b2 * b2 + 2.0 * beta * rp
+            den = b2 + math.sqrt(disc) if disc > 0.0 else b2
+            x = math.ceil(2.0 * rp / den) if den > 0.0 else nmax
+        xi = np.int64(min(max(x, 1.0), float(nmax)))
+        while xi > 1 and (xi - 1) * A + beta * 0.5 * (xi - 1) * (xi - 2) >= rp:
+            xi -= 1
+        while xi < nmax and xi * A + beta * 0.5 * xi * (xi - 1) < rp:
+            xi += 1
+        return xi
+
     @_jit
     def _elssim_tile(rng, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
                      gb, gc, omf, dinv, has_dark, gain, hot_mu, hot_sigma, theta,
@@ -179,52 +203,88 @@ if HAVE_NUMBA:
                 dark_next[p] = m0 - 1 + _geometric(rng, dinv[p]) if has_dark[p] else _NEVER
         for h in hot_idx:
             rem[h] = np.inf  # hot pixels never take the event path
+            refr[h] = 0
         npc = start.size
+        nt = p1 - p0
+        nw = (nt + 7) // 8
+        flag = np.zeros(8 * nw, np.uint8)
+        flag8 = flag.view(np.uint64)
+        svals = np.empty(nt, np.float64)
         for i in range(npc):
             a = m0 + start[i]
             n = length[i]
             end = a + n
             lo = lo_[i]
             nk = nk_[i]
-            two = nk == 2
-            w00 = w[i, 0, 0]
-            w01 = w[i, 0, 1] if nk > 1 else 0.0
-            for p in range(p0, p1):
-                if two:
+            # ---- pass 1 (vectorised): subtract the piece's expected count; flag pixels that may spike
+            if nk == 2:
+                w00 = w[i, 0, 0]
+                w01 = w[i, 0, 1]
+                for p in range(p0, p1):
                     s = w00 * np.float64(R[lo, p]) + w01 * np.float64(R[lo + 1, p])
-                else:
+                    r_ = rem[p] - s
+                    rem[p] = r_
+                    svals[p - p0] = s
+                    flag[p - p0] = (r_ <= 0.0) | (refr[p] != 0) | (dark_next[p] < end)
+            else:
+                for p in range(p0, p1):
                     s = 0.0
                     for r in range(nk):
                         s += w[i, 0, r] * np.float64(R[lo + r, p])
-                rp = rem[p]
-                if refr[p] == 0 and dark_next[p] >= end and s < rp:
-                    rem[p] = rp - s  # no spike in this piece
+                    r_ = rem[p] - s
+                    rem[p] = r_
+                    svals[p - p0] = s
+                    flag[p - p0] = (r_ <= 0.0) | (refr[p] != 0) | (dark_next[p] < end)
+            # ---- pass 2: the flagged pixels, event by event
+            for word in range(nw):
+                if flag8[word] == 0:  # eight pixels at a time
                     continue
-                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
-                q = 0
-                while q < n:
-                    m = a + q
-                    if refr[p] == 0 and dark_next[p] >= end:
-                        # sum of the rest of the piece; skip it when it cannot reach the target
-                        rest = (n - q) * l0 + sl * 0.5 * (q + n - 1) * (n - q)
-                        if rest < rem[p]:
-                            rem[p] -= rest
-                            break
-                    lam = l0 + sl * q
+                for p in range(p0 + 8 * word, min(p0 + 8 * word + 8, p1)):
+                    if flag[p - p0] == 0:
+                        continue
+                    rp = rem[p] + svals[p - p0]
+                    if rp != rp or rp == np.inf:
+                        continue  # hot pixel
+                    s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    fp = 1.0 - omf[p]
+                    dn = dark_next[p]
+                    # Refractory (Eq. 6): the interval after a spike collects lambda (1 - f), which is the
+                    # same as adding f * lambda of that interval to the target of the new count.
                     if refr[p]:
-                        lam *= omf[p]
-                        refr[p] = 0
-                    r_ = rem[p] - lam
-                    dk = dark_next[p] == m
-                    if r_ <= 0.0 or dk:
+                        rp += fp * l0
+                    rf = 0
+                    q = 0
+                    jd = dn - a  # the dark event, relative to the piece
+                    while True:
+                        # no light crossing in the rest of the piece?
+                        rest = (n - q) * (l0 + sl * q) + sl * 0.5 * (n - q) * (n - q - 1)
+                        if rest < rp:
+                            if jd >= n:
+                                rp -= rest
+                                break
+                            j = jd
+                        else:  # step to the first interval where the count reaches the target
+                            j = q
+                            c = l0 + sl * q
+                            while c < rp and j < n - 1:
+                                j += 1
+                                c += l0 + sl * j
+                            if jd < j:
+                                j = jd
+                        m = a + j
                         out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
-                        refr[p] = 1
-                        rem[p] = _gamma(rng, gb[p], gc[p])
-                        if dk:
-                            dark_next[p] = m + _geometric(rng, dinv[p])
-                    else:
-                        rem[p] = r_
-                    q += 1
+                        rp = _gamma(rng, gb[p], gc[p])
+                        if jd == j:
+                            dn = m + _geometric(rng, dinv[p])
+                            jd = dn - a
+                        q = j + 1
+                        if q >= n:
+                            rf = 1  # the refractory interval is the first of the next piece
+                            break
+                        rp += fp * (l0 + sl * q)
+                    rem[p] = rp
+                    refr[p] = rf
+                    dark_next[p] = dn
             # ---- hot pixels: the step simulator, in the order of Algorithm 2
             for h in hot_idx:
                 s, l0, sl = _piece_coeffs(R, w, i, lo, nk, h)

@@ -246,7 +246,10 @@ class RateSchedule:
         self.t0_s: float | None = None
 
     def add(self, rate_e, t_s=None) -> None:
+        given = rate_e
         rate_e = np.asarray(rate_e, dtype=np.float32)
+        # keep a private copy (the caller may reuse its buffer), unless the conversion already made one
+        own = not np.may_share_memory(rate_e, given) if isinstance(given, np.ndarray) else True
         if rate_e.ndim != 3:
             raise InputError(f"rate_e must be (K, H, W); got shape {rate_e.shape}", field="rate_e")
         if rate_e.size:
@@ -273,7 +276,7 @@ class RateSchedule:
             raise InputError(f"frame shape changed from {self._shape} to {rate_e.shape[1:]}", field="rate_e")
         self._shape = rate_e.shape[1:]
         if rate_e.shape[0]:
-            self._chunks.append(rate_e.copy())
+            self._chunks.append(rate_e if own else rate_e.copy())
             self._n += rate_e.shape[0]
 
     def _gather(self, lo: int, hi: int) -> np.ndarray:
