@@ -130,7 +130,7 @@ def psnr_ssim(pred, ref) -> tuple[float, float]:
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
     w = white_level(ref, WHITE_PERCENTILE)
     p, r = normalise(pred, w), normalise(ref, w)
-    psnr = float(peak_signal_noise_ratio(r, p, data_range=1.0))
+    psnr = float("inf") if np.array_equal(p, r) else float(peak_signal_noise_ratio(r, p, data_range=1.0))
     win = min(7, min(r.shape) - (1 - min(r.shape) % 2))
     ssim = float(structural_similarity(r, p, data_range=1.0, win_size=max(win, 3))) if min(r.shape) >= 3 else float("nan")
     return psnr, ssim

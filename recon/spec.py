@@ -78,6 +78,8 @@ def _convert(key, value, typ):
                 return float(lo), float(hi)
             return float(value)
         return typ(value)
+    except InputError:
+        raise
     except ValueError:
         raise InputError(f"bad value '{value}' for option '{key}'", field="--data") from None
 

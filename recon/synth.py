@@ -31,8 +31,10 @@ def _texture(rng, H, W):
         t = (((yy // s) + (xx // s)) % 2).astype(np.float32)
     elif kind == 2:  # smooth blobs
         t = np.zeros((H, W), np.float32)
+        hi = max(H, W) / 3
+        lo = 3.0 if hi > 3.0 else 1.0
         for _ in range(4):
-            cy, cx, r = rng.uniform(0, H), rng.uniform(0, W), rng.uniform(3, max(H, W) / 3)
+            cy, cx, r = rng.uniform(0, H), rng.uniform(0, W), rng.uniform(lo, max(hi, lo + 1.0))
             t += np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * r * r)).astype(np.float32)
         t /= max(t.max(), 1e-6)
     else:  # flat
