@@ -1,6 +1,10 @@
-"""render2spike reconstruction stage: classic (TFP, TFI) and learned (RSIR-architecture) methods,
-datasets, training and metrics. Never imports Mitsuba."""
+"""render2spike reconstruction stage: classic (TFP, TFI, dead-time-corrected TFP) and learned
+(RSIR-architecture) methods, datasets, training and metrics. Never imports Mitsuba.
 
-from .classic import tfp
+The numpy-only parts import here; the network (``recon.nets``), training (``recon.train``) and the
+torch-facing pieces import PyTorch lazily. See ``docs/recon.md``.
+"""
 
-__all__ = ["tfp"]
+from .classic import (invert_renewal_rate, renewal_spike_rate, tfi, tfp, tfp_deadtime, tfp_windows)
+
+__all__ = ["tfp", "tfp_windows", "tfi", "tfp_deadtime", "renewal_spike_rate", "invert_renewal_rate"]
