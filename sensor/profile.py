@@ -228,6 +228,13 @@ class SensorProfile:
             mask[idx] = True
             hmu[idx] = hot_mu * np.exp(g_hot.normal(0.0, hot_mu_spread, n_hot)) if hot_mu_spread > 0 else hot_mu
             hsig[idx] = hot_sigma
+        if n_hot and n_hot < h * w:
+            # convention shared with calibration: a hot pixel's ordinary dark events happen at the population
+            # median rate; everything it has in excess is hot-pixel charge (hot_mu, hot_sigma). Dark recordings
+            # cannot tell a hot pixel's own mu_DC from its hot charge, so this is the identifiable split.
+            dark = dark.reshape(-1)
+            dark[idx] = np.median(np.delete(dark, idx))
+            dark = dark.reshape(h, w)
         prov = {
             "maps": f"drawn by SensorProfile.synthetic(seed={seed}, dark_rate={dark_rate}, "
                     f"dark_rate_spread={dark_rate_spread}, prnu_sigma={prnu_sigma}, "
