@@ -240,16 +240,25 @@ class RateSchedule:
         self.per_interval = per_interval
         self._t: np.ndarray = np.zeros(0, np.float64)
         self._chunks: list[np.ndarray] = []  # buffered rows (keyframes, or intervals in per_interval mode)
+        self._borrowed: list[bool] = []  # chunk i is a view of a caller's array (add(copy=False))
+        self._scratch: np.ndarray | None = None  # reused buffer for gathers that span chunks
         self._n = 0  # number of buffered rows
         self._shape = None
         self._offset = 0  # per_interval mode: index of the first buffered interval
         self.t0_s: float | None = None
 
-    def add(self, rate_e, t_s=None) -> None:
+    def add(self, rate_e, t_s=None, copy: bool = True) -> None:
+        """Buffer keyframes ``rate_e`` (K, H, W) at times ``t_s`` (K,) [s] (no ``t_s`` in per-interval mode).
+
+        ``copy=False`` keeps a reference to the caller's array instead of a private copy
+        (when no dtype conversion made one anyway); the caller must then call
+        :meth:`detach` before it modifies that array (``SpikeSimulator`` does, at the
+        end of every feed, so only the few keyframes still needed are ever copied).
+        """
         given = rate_e
         rate_e = np.asarray(rate_e, dtype=np.float32)
         # keep a private copy (the caller may reuse its buffer), unless the conversion already made one
-        own = not np.may_share_memory(rate_e, given) if isinstance(given, np.ndarray) else True
+        shared = isinstance(given, np.ndarray) and np.may_share_memory(rate_e, given)
         if rate_e.ndim != 3:
             raise InputError(f"rate_e must be (K, H, W); got shape {rate_e.shape}", field="rate_e")
         if rate_e.size:
@@ -276,11 +285,25 @@ class RateSchedule:
             raise InputError(f"frame shape changed from {self._shape} to {rate_e.shape[1:]}", field="rate_e")
         self._shape = rate_e.shape[1:]
         if rate_e.shape[0]:
-            self._chunks.append(rate_e if own else rate_e.copy())
+            if shared and copy:
+                rate_e, shared = rate_e.copy(), False
+            self._chunks.append(rate_e)
+            self._borrowed.append(shared)
             self._n += rate_e.shape[0]
 
-    def _gather(self, lo: int, hi: int) -> np.ndarray:
-        """Buffered rows [lo, hi) as one array (a view when they lie in one chunk)."""
+    def detach(self) -> None:
+        """Copy the buffered rows that still reference a caller's array (see ``add(copy=False)``)."""
+        for i, b in enumerate(self._borrowed):
+            if b:
+                self._chunks[i] = self._chunks[i].copy()
+                self._borrowed[i] = False
+
+    def _gather(self, lo: int, hi: int, scratch: bool = False) -> np.ndarray:
+        """Buffered rows [lo, hi) as one array (a view when they lie in one chunk).
+
+        ``scratch=True``: rows spanning chunks are joined in a buffer reused by the next
+        such call (no fresh allocation per block), valid until then.
+        """
         parts, pos = [], 0
         for c in self._chunks:
             a, b = max(lo - pos, 0), min(hi - pos, c.shape[0])
@@ -289,7 +312,15 @@ class RateSchedule:
             pos += c.shape[0]
             if pos >= hi:
                 break
-        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+        if len(parts) == 1:
+            return parts[0]
+        if not scratch:
+            return np.concatenate(parts)
+        n = hi - lo
+        row = parts[0].shape[1:]
+        if self._scratch is None or self._scratch.shape[0] < n or self._scratch.shape[1:] != row:
+            self._scratch = np.empty((max(n, 2 * n if self._scratch is None else n),) + row, np.float32)
+        return np.concatenate(parts, out=self._scratch[:n])
 
     def _drop(self, n: int) -> None:
         """Forget the first ``n`` buffered rows."""
@@ -299,6 +330,7 @@ class RateSchedule:
                 n -= c.shape[0]
                 self._n -= c.shape[0]
                 self._chunks.pop(0)
+                self._borrowed.pop(0)
             else:
                 self._chunks[0] = c[n:]
                 self._n -= n
@@ -351,19 +383,24 @@ class RateSchedule:
         return out
 
     def segments(self, m0: int, m1: int) -> Segments:
-        """The rate of intervals [m0, m1) as affine :class:`Segments`; drops keyframes no longer needed."""
+        """The rate of intervals [m0, m1) as affine :class:`Segments`; drops keyframes no longer needed.
+
+        ``Segments.rates`` may be a view of the buffered keyframes or of a scratch buffer:
+        use it before the next call.
+        """
         if m1 > self.covered():
             raise InputError(f"intervals up to {m1} requested but keyframes cover only {self.covered()}")
         if self.per_interval:
-            seg = Segments.per_interval(self._gather(m0 - self._offset, m1 - self._offset), m0)
+            seg = Segments.per_interval(self._gather(m0 - self._offset, m1 - self._offset, scratch=True), m0)
             self._drop(m1 - self._offset)
             self._offset = m1
             return seg
         bounds, lo, hi, keep = self._knot_range(m0, m1)
-        seg = Segments.from_knots(self._t[lo:hi + 1], self._gather(lo, hi + 1), self.t0_s, m0, m1, self.interval_s)
+        seg = Segments.from_knots(self._t[lo:hi + 1], self._gather(lo, hi + 1, scratch=True), self.t0_s, m0, m1,
+                                  self.interval_s)
         self._forget_knots(keep)
         return seg
 
     def knots(self):
         """Buffered keyframe times [s] and rates (K, H, W)."""
-        return self._t, (self._gather(0, self._n) if self._n else None)
+        return self._t, (np.array(self._gather(0, self._n)) if self._n else None)

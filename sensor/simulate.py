@@ -87,11 +87,16 @@ class SpikeSimulator:
         if self.finished:
             raise InputError("this stream is finished; start a new SpikeSimulator")
         rate_e = self._check_shape(rate_e)
-        self.schedule.add(rate_e, None if t_s is None else np.atleast_1d(np.asarray(t_s, np.float64)))
-        while self.schedule.covered() >= self.n_done + self.block:
-            out = self._run(self.n_done, self.n_done + self.block, packed)
-            self.n_done += self.block
-            yield out
+        # no copy of the caller's keyframes: the blocks they complete are simulated now, and the
+        # few rows still needed afterwards are copied by detach() before control returns for good
+        self.schedule.add(rate_e, None if t_s is None else np.atleast_1d(np.asarray(t_s, np.float64)), copy=False)
+        try:
+            while self.schedule.covered() >= self.n_done + self.block:
+                out = self._run(self.n_done, self.n_done + self.block, packed)
+                self.n_done += self.block
+                yield out
+        finally:
+            self.schedule.detach()
 
     def iter_feed(self, rate_e, t_s=None) -> Iterator[np.ndarray]:
         """Add rate data and yield spike blocks bool (B, H, W) as whole blocks become available."""
