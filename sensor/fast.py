@@ -112,16 +112,49 @@ if HAVE_NUMBA:
     _jit_inline = njit(nogil=True, cache=True, inline="always", error_model="numpy")
 
     @_jit_inline
-    def _gamma(rng, b, c):
-        """Gamma(k, 1) for k >= 1 (b = k - 1/3, c = 1/sqrt(9b)): Marsaglia-Tsang, as numpy's standard_gamma."""
+    def _rotl(x, k):
+        return (x << np.uint64(k)) | (x >> np.uint64(64 - k))
+
+    @_jit_inline
+    def _uniform(xs):
+        """U[0, 1) with 53 random bits from the tile's xoshiro256+ state ``xs`` (uint64[4])."""
+        s0, s1, s2, s3 = xs[0], xs[1], xs[2], xs[3]
+        r = s0 + s3
+        t = s1 << np.uint64(17)
+        s2 ^= s0
+        s3 ^= s1
+        s1 ^= s2
+        s0 ^= s3
+        s2 ^= t
+        s3 = _rotl(s3, 45)
+        xs[0], xs[1], xs[2], xs[3] = s0, s1, s2, s3
+        return np.float64(r >> np.uint64(11)) * 1.1102230246251565e-16
+
+    @_jit_inline
+    def _gamma(rng, xs, b, c):
+        """Gamma(k, 1) for k >= 1 (b = k - 1/3, c = 1/sqrt(9b)): Marsaglia-Tsang, as numpy's standard_gamma.
+
+        With x ~ N(0, 1), v = (1 + c x)^3 and u ~ U(0, 1), ``b v`` is accepted iff
+        u < exp(h), h = x^2/2 + b (1 - v + log v). Expanding log(1 + y), y = c x, the
+        x^2 terms cancel exactly (9 b c^2 = 1): h = 3 b (-y^4/4 + y^5/5 - y^6/6 + ...), and for
+        |y| <= 1/2 the tail beyond y^5 is >= -y^6/3, so h >= h_low = 3 b y^4 (-1/4 + y/5 - y^2/3).
+        Since exp(h) >= 1 + h >= 1 + h_low, ``u < 1 + h_low`` accepts without a logarithm (for
+        large k almost always); otherwise numpy's squeeze and exact test decide. Every branch
+        accepts only when u < exp(h): the law is exactly Marsaglia-Tsang's.
+        """
         while True:
             x = rng.standard_normal()
             v = 1.0 + c * x
             while v <= 0.0:
                 x = rng.standard_normal()
                 v = 1.0 + c * x
+            y = v - 1.0
             v = v * v * v
-            u = rng.random()
+            u = _uniform(xs)
+            if abs(y) <= 0.5:
+                y2 = y * y
+                if u < 1.0 + 3.0 * b * y2 * y2 * (-0.25 + 0.2 * y - y2 / 3.0):
+                    return b * v
             if u < 1.0 - 0.0331 * (x * x) * (x * x):
                 return b * v
             if math.log(u) < 0.5 * x * x + b * (1.0 - v + math.log(v)):
@@ -140,12 +173,12 @@ if HAVE_NUMBA:
     _INV = 1.0 / np.arange(1, 65, dtype=np.float64)
 
     @_jit_inline
-    def _poisson(rng, lam):
+    def _poisson(rng, xs, lam):
         """Poisson(lam): inversion (chop-down search, one uniform) for lam < 30, numpy's PTRS otherwise."""
         if lam <= 0.0:
             return 0.0
         if lam < 30.0:
-            u = rng.random()
+            u = _uniform(xs)
             p = math.exp(-lam)
             x = 0
             while u > p:
@@ -193,13 +226,13 @@ if HAVE_NUMBA:
         return xi
 
     @_jit
-    def _elssim_tile(rng, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
+    def _elssim_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
                      gb, gc, omf, dinv, has_dark, gain, hot_mu, hot_sigma, theta,
                      rem, dark_next, refr, v, out):
         # ---- first block: draw the initial state
         for p in range(p0, p1):
             if rem[p] != rem[p]:  # NaN: not drawn yet
-                rem[p] = _gamma(rng, gb[p], gc[p])
+                rem[p] = _gamma(rng, xs, gb[p], gc[p])
                 dark_next[p] = m0 - 1 + _geometric(rng, dinv[p]) if has_dark[p] else _NEVER
         for h in hot_idx:
             rem[h] = np.inf  # hot pixels never take the event path
@@ -209,7 +242,6 @@ if HAVE_NUMBA:
         nw = (nt + 7) // 8
         flag = np.zeros(8 * nw, np.uint8)
         flag8 = flag.view(np.uint64)
-        svals = np.empty(nt, np.float64)
         for i in range(npc):
             a = m0 + start[i]
             n = length[i]
@@ -224,7 +256,6 @@ if HAVE_NUMBA:
                     s = w00 * np.float64(R[lo, p]) + w01 * np.float64(R[lo + 1, p])
                     r_ = rem[p] - s
                     rem[p] = r_
-                    svals[p - p0] = s
                     flag[p - p0] = (r_ <= 0.0) | (refr[p] != 0) | (dark_next[p] < end)
             else:
                 for p in range(p0, p1):
@@ -233,7 +264,6 @@ if HAVE_NUMBA:
                         s += w[i, 0, r] * np.float64(R[lo + r, p])
                     r_ = rem[p] - s
                     rem[p] = r_
-                    svals[p - p0] = s
                     flag[p - p0] = (r_ <= 0.0) | (refr[p] != 0) | (dark_next[p] < end)
             # ---- pass 2: the flagged pixels, event by event
             for word in range(nw):
@@ -242,10 +272,10 @@ if HAVE_NUMBA:
                 for p in range(p0 + 8 * word, min(p0 + 8 * word + 8, p1)):
                     if flag[p - p0] == 0:
                         continue
-                    rp = rem[p] + svals[p - p0]
-                    if rp != rp or rp == np.inf:
+                    if rem[p] == np.inf:
                         continue  # hot pixel
                     s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    rp = rem[p] + s  # undo pass 1: this piece is now taken interval by interval
                     fp = 1.0 - omf[p]
                     dn = dark_next[p]
                     # Refractory (Eq. 6): the interval after a spike collects lambda (1 - f), which is the
@@ -273,7 +303,7 @@ if HAVE_NUMBA:
                                 j = jd
                         m = a + j
                         out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
-                        rp = _gamma(rng, gb[p], gc[p])
+                        rp = _gamma(rng, xs, gb[p], gc[p])
                         if jd == j:
                             dn = m + _geometric(rng, dinv[p])
                             jd = dn - a
@@ -293,7 +323,7 @@ if HAVE_NUMBA:
                     lam = l0 + sl * q
                     if refr[h]:
                         lam *= omf[h]
-                    vv = v[h] + gain[h] * _poisson(rng, lam)
+                    vv = v[h] + gain[h] * _poisson(rng, xs, lam)
                     if dark_next[h] == m:
                         vv += theta
                         dark_next[h] = m + _geometric(rng, dinv[h])
@@ -339,7 +369,7 @@ if HAVE_NUMBA:
                 v[p] = vp
 
     @_jit
-    def _isi_tile(rng, R, start, length, lo_, nk_, w, m0, p0, p1, gb, gc, gain, dark_e, tau, out):
+    def _isi_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, gb, gc, gain, dark_e, tau, out):
         for i in range(start.size):
             a = m0 + start[i]
             n = length[i]
@@ -358,20 +388,55 @@ if HAVE_NUMBA:
                     t = tau[p]
                     if t != t:
                         if qq > 0.0:
-                            t = m + _gamma(rng, gb[p], gc[p]) / qq
+                            t = m + _gamma(rng, xs, gb[p], gc[p]) / qq
                         else:
                             continue
                     if t < m + 1:
                         out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
                         while t < m + 1:
                             if qq > 0.0:
-                                t = t + _gamma(rng, gb[p], gc[p]) / qq
+                                t = t + _gamma(rng, xs, gb[p], gc[p]) / qq
                             else:
                                 t = np.nan
                                 break
                     tau[p] = t
                     if t >= end:
                         break
+
+
+if HAVE_NUMBA:
+    @_jit
+    def _draw_samples(kind, rng, xs, a, n):
+        """n draws of one of the kernels' samplers (for tests): 0 uniform, 1 Gamma(a), 2 Geometric(p=a), 3 Poisson(a)."""
+        out = np.empty(n)
+        b = a - 1.0 / 3.0
+        c = 1.0 / math.sqrt(9.0 * b) if b > 0 else 0.0
+        inv = -1.0 / math.log1p(-a) if 0.0 < a < 1.0 else 0.0
+        for i in range(n):
+            if kind == 0:
+                out[i] = _uniform(xs)
+            elif kind == 1:
+                out[i] = _gamma(rng, xs, b, c)
+            elif kind == 2:
+                out[i] = _geometric(rng, inv)
+            else:
+                out[i] = _poisson(rng, xs, a)
+        return out
+
+
+def sample(kind: str, a: float, n: int, seed: int = 0) -> np.ndarray:
+    """Draw ``n`` variates with the samplers the kernels use (``uniform``, ``gamma``, ``geometric``, ``poisson``)."""
+    rng = np.random.default_rng(seed)
+    return _draw_samples(("uniform", "gamma", "geometric", "poisson").index(kind), rng, _xoshiro_state(rng),
+                         float(a), int(n))
+
+
+def _xoshiro_state(rng) -> np.ndarray:
+    """Seed of the tile's inline uniform generator (xoshiro256+), drawn from the tile's numpy generator."""
+    st = rng.integers(0, 2 ** 64 - 1, size=4, dtype=np.uint64, endpoint=True)
+    if not st.any():  # pragma: no cover - probability 2^-256
+        st[0] = 1
+    return st
 
 
 # ------------------------------------------------------------------------------------------ model classes
@@ -449,7 +514,7 @@ class ELSSimFast(_FastModel):
 
     def _tile(self, seg, state, rng, p0, p1, out):
         ti = p0 // TILE_PIXELS
-        _elssim_tile(rng, seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
+        _elssim_tile(rng, _xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
                      self.hot_tiles[ti], self.gb, self.gc, self.omf, self.dinv, self.has_dark, self.gain,
                      self.hot_mu, self.hot_sigma, self.theta,
                      state["rem"], state["dark_next"], state["refr"], state["v"], out)
@@ -487,7 +552,7 @@ class ISIFast(_FastModel):
         return {"m": 0, "tau": np.full(self.n_pixels, np.nan)}
 
     def _tile(self, seg, state, rng, p0, p1, out):
-        _isi_tile(rng, seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
+        _isi_tile(rng, _xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
                   self.gb, self.gc, self.gain, self.dark_e, state["tau"], out)
 
 

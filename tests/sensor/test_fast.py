@@ -417,3 +417,34 @@ def test_thread_env_is_respected(monkeypatch):
     monkeypatch.delenv("RENDER2SPIKE_THREADS")
     assert fast.n_threads() >= 1
     assert os.environ.get("RENDER2SPIKE_THREADS") is None
+
+
+# ------------------------------------------------------------------------------------ samplers
+@pytest.mark.parametrize("k", [1.0, 1.5, 3.0, 20.0, 2000.0])
+def test_gamma_sampler_is_gamma(k):
+    x = fast.sample("gamma", k, 200_000, seed=int(k * 10))
+    assert stats.kstest(x, stats.gamma(k).cdf).pvalue > ALPHA
+    assert abs(x.mean() - k) < Z * np.sqrt(k / x.size)
+
+
+def test_uniform_geometric_poisson_samplers():
+    u = fast.sample("uniform", 0.0, 200_000, seed=1)
+    assert stats.kstest(u, "uniform").pvalue > ALPHA and u.min() >= 0 and u.max() < 1
+    for p in (0.3, 0.0047):
+        g = fast.sample("geometric", p, 200_000, seed=2)
+        assert g.min() >= 1
+        # chi-square on the support binned by CDF deciles of the geometric law
+        edges = np.unique(stats.geom(p).ppf(np.linspace(0, 1, 11)[1:-1]))
+        obs = np.bincount(np.searchsorted(edges, g, side="left"), minlength=edges.size + 1)
+        cdf = np.concatenate([[0], stats.geom(p).cdf(edges), [1]])
+        assert stats.chisquare(obs, np.diff(cdf) * g.size).pvalue > ALPHA
+    for lam in (0.3, 9.0, 29.5, 120.0):  # inversion below 30, numpy's PTRS above
+        x = fast.sample("poisson", lam, 200_000, seed=3)
+        hi = int(stats.poisson(lam).ppf(1 - 1e-6))
+        obs = np.bincount(np.minimum(x.astype(int), hi), minlength=hi + 1)
+        exp_ = stats.poisson(lam).pmf(np.arange(hi + 1))
+        exp_[-1] += stats.poisson(lam).sf(hi)
+        keep = exp_ * x.size >= 5
+        obs_k = np.append(obs[keep], obs[~keep].sum())
+        exp_k = np.append(exp_[keep], exp_[~keep].sum()) * x.size
+        assert stats.chisquare(obs_k, exp_k).pvalue > ALPHA, lam
