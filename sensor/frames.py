@@ -243,8 +243,12 @@ def write_manifest(folder, height: int, width: int, frames: list[dict], **extra)
     return write_json_atomic(Path(folder) / MANIFEST_NAME, manifest)
 
 
-def write_frames(folder, phi, times_s, illuminance_lux=None, attrs: dict | None = None, **manifest_extra) -> Path:
-    """Write a whole (K, H, W) Phi stack as a frames folder (convenience for tests and tools)."""
+def write_frames(folder, phi, times_s, focal_lux=None, attrs: dict | None = None, manifest: dict | None = None) -> Path:
+    """Write a whole (K, H, W) Phi stack as a frames folder (convenience for tests and tools).
+
+    ``focal_lux`` (K, H, W) is the ``E`` channel [lux]; ``manifest`` holds extra manifest keys
+    (e.g. ``{"illuminance_lux": 100.0}``, the scene illuminance the frames correspond to).
+    """
     folder = Path(folder)
     phi = np.asarray(phi, dtype=np.float32)
     times_s = np.asarray(times_s, dtype=np.float64)
@@ -253,7 +257,7 @@ def write_frames(folder, phi, times_s, illuminance_lux=None, attrs: dict | None 
     entries = []
     for i, t in enumerate(times_s):
         name = frame_filename(i)
-        E = None if illuminance_lux is None else illuminance_lux[i]
+        E = None if focal_lux is None else focal_lux[i]
         write_frame(folder / name, phi[i], E, time_s=float(t), attrs=attrs)
         entries.append({"file": name, "time_s": float(t)})
-    return write_manifest(folder, phi.shape[1], phi.shape[2], entries, **manifest_extra)
+    return write_manifest(folder, phi.shape[1], phi.shape[2], entries, **(manifest or {}))
