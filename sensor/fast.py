@@ -76,6 +76,8 @@ except ImportError:  # pragma: no cover
 
 #: pixels per tile (a multiple of 8, so tiles own whole bytes of the packed output)
 TILE_PIXELS = 8192
+#: pixels per sub-chunk inside a tile: the kernel runs all pieces of a block on one sub-chunk at a time
+SUB_PIXELS = 512
 #: intervals per block of the fast implementations (part of their reproducibility contract)
 FAST_BLOCK_INTERVALS = 1000
 #: "never" for the next dark event (int64)
@@ -204,20 +206,16 @@ if HAVE_NUMBA:
 
     @_jit_inline
     def _crossing(rp, A, beta, nmax):
-        """Smallest x in 1..nmax with C(x) = A x + beta x (x - 1) / 2 >= rp, or nmax + 1 when none.
+        """Smallest x in 1..nmax with C(x) = A x + beta x (x - 1) / 2 >= rp, given C(nmax) >= rp.
 
-        C(x) is the expected count of x intervals whose lambda starts at A and grows by beta per
-        interval (lambda >= 0, so C increases with x).
+        C(x) is the expected count of x intervals whose lambda starts at A and changes by beta per
+        interval (lambda >= 0 throughout, so C increases with x). The root of the quadratic gives
+        the answer up to round-off; the two loops make it exact for the float C.
         """
-        if nmax * A + beta * 0.5 * nmax * (nmax - 1) < rp:
-            return nmax + 1
         b2 = A - 0.5 * beta
-        if beta == 0.0:
-            x = math.ceil(rp / A) if A > 0.0 else nmax
-        else:
-            disc = b2 * b2 + 2.0 * beta * rp
-            den = b2 + math.sqrt(disc) if disc > 0.0 else b2
-            x = math.ceil(2.0 * rp / den) if den > 0.0 else nmax
+        disc = b2 * b2 + 2.0 * beta * rp
+        den = b2 + math.sqrt(disc) if disc > 0.0 else b2
+        x = math.ceil(2.0 * rp / den) if den > 0.0 else float(nmax)
         xi = np.int64(min(max(x, 1.0), float(nmax)))
         while xi > 1 and (xi - 1) * A + beta * 0.5 * (xi - 1) * (xi - 2) >= rp:
             xi -= 1
@@ -228,50 +226,58 @@ if HAVE_NUMBA:
     @_jit
     def _elssim_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
                      gb, gc, omf, dinv, has_dark, gain, hot_mu, hot_sigma, theta,
-                     rem, dark_next, refr, v, out):
+                     rem, dark_next, refr, guard, v, out):
         # ---- first block: draw the initial state
         for p in range(p0, p1):
             if rem[p] != rem[p]:  # NaN: not drawn yet
                 rem[p] = _gamma(rng, xs, gb[p], gc[p])
                 dark_next[p] = m0 - 1 + _geometric(rng, dinv[p]) if has_dark[p] else _NEVER
+        for p in range(p0, p1):
+            guard[p] = -1 if refr[p] else dark_next[p]
         for h in hot_idx:
             rem[h] = np.inf  # hot pixels never take the event path
-            refr[h] = 0
+            guard[h] = _NEVER
         npc = start.size
-        nt = p1 - p0
-        nw = (nt + 7) // 8
-        flag = np.zeros(8 * nw, np.uint8)
-        flag8 = flag.view(np.uint64)
-        for i in range(npc):
-            a = m0 + start[i]
-            n = length[i]
-            end = a + n
-            lo = lo_[i]
-            nk = nk_[i]
-            # ---- pass 1 (vectorised): subtract the piece's expected count; flag pixels that may spike
-            if nk == 2:
-                w00 = w[i, 0, 0]
-                w01 = w[i, 0, 1]
-                for p in range(p0, p1):
-                    s = w00 * np.float64(R[lo, p]) + w01 * np.float64(R[lo + 1, p])
-                    r_ = rem[p] - s
-                    rem[p] = r_
-                    flag[p - p0] = (r_ <= 0.0) | (refr[p] != 0) | (dark_next[p] < end)
-            else:
-                for p in range(p0, p1):
-                    s = 0.0
-                    for r in range(nk):
-                        s += w[i, 0, r] * np.float64(R[lo + r, p])
-                    r_ = rem[p] - s
-                    rem[p] = r_
-                    flag[p - p0] = (r_ <= 0.0) | (refr[p] != 0) | (dark_next[p] < end)
-            # ---- pass 2: the flagged pixels, event by event
-            for word in range(nw):
-                if flag8[word] == 0:  # eight pixels at a time
-                    continue
-                for p in range(p0 + 8 * word, min(p0 + 8 * word + 8, p1)):
-                    if flag[p - p0] == 0:
-                        continue
+        flag = np.zeros(SUB_PIXELS, np.uint8)
+        idx = np.empty(SUB_PIXELS + 1, np.int64)
+        # sub-chunks of SUB_PIXELS pixels, all pieces of the block each: the state stays in L1/L2
+        for c0 in range(p0, p1, SUB_PIXELS):
+            c1 = min(c0 + SUB_PIXELS, p1)
+            nt = c1 - c0
+            for i in range(npc):
+                a = m0 + start[i]
+                n = length[i]
+                end = a + n
+                lo = lo_[i]
+                nk = nk_[i]
+                # ---- pass 1 (vectorised): subtract the piece's expected count; flag pixels that may spike
+                # (guard = dark_next, or -1 while the next interval is a refractory one)
+                rm = rem[c0:c1]
+                gd = guard[c0:c1]
+                if nk == 2:
+                    w00 = w[i, 0, 0]
+                    w01 = w[i, 0, 1]
+                    R0 = R[lo, c0:c1]
+                    R1 = R[lo + 1, c0:c1]
+                    for t in range(nt):
+                        r_ = rm[t] - (w00 * np.float64(R0[t]) + w01 * np.float64(R1[t]))
+                        rm[t] = r_
+                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < end)
+                else:
+                    for t in range(nt):
+                        s = 0.0
+                        for r in range(nk):
+                            s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
+                        r_ = rm[t] - s
+                        rm[t] = r_
+                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < end)
+                # ---- pass 2: the flagged pixels, event by event (compacted first: no branch per pixel)
+                cnt = 0
+                for t in range(nt):
+                    idx[cnt] = t
+                    cnt += flag[t]
+                for c_ in range(cnt):
+                    p = c0 + idx[c_]
                     if rem[p] == np.inf:
                         continue  # hot pixel
                     s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
@@ -293,12 +299,16 @@ if HAVE_NUMBA:
                                 rp -= rest
                                 break
                             j = jd
-                        else:  # step to the first interval where the count reaches the target
-                            j = q
-                            c = l0 + sl * q
-                            while c < rp and j < n - 1:
-                                j += 1
-                                c += l0 + sl * j
+                        else:  # the first interval where the count reaches the target
+                            A = l0 + sl * q
+                            if rp <= 4.0 * A:  # a few intervals away: step
+                                j = q
+                                c = A
+                                while c < rp and j < n - 1:
+                                    j += 1
+                                    c += l0 + sl * j
+                            else:  # closed form
+                                j = q - 1 + _crossing(rp, A, sl, n - q)
                             if jd < j:
                                 j = jd
                         m = a + j
@@ -315,7 +325,13 @@ if HAVE_NUMBA:
                     rem[p] = rp
                     refr[p] = rf
                     dark_next[p] = dn
-            # ---- hot pixels: the step simulator, in the order of Algorithm 2
+                    guard[p] = -1 if rf else dn
+        # ---- hot pixels: the step simulator, in the order of Algorithm 2
+        for i in range(npc):
+            a = m0 + start[i]
+            n = length[i]
+            lo = lo_[i]
+            nk = nk_[i]
             for h in hot_idx:
                 s, l0, sl = _piece_coeffs(R, w, i, lo, nk, h)
                 for q in range(n):
@@ -510,14 +526,14 @@ class ELSSimFast(_FastModel):
     def init_state(self) -> dict:
         n = self.n_pixels
         return {"m": 0, "rem": np.full(n, np.nan), "dark_next": np.zeros(n, np.int64),
-                "refr": np.zeros(n, np.uint8), "v": np.zeros(n, np.float64)}
+                "refr": np.zeros(n, np.uint8), "guard": np.zeros(n, np.int64), "v": np.zeros(n, np.float64)}
 
     def _tile(self, seg, state, rng, p0, p1, out):
         ti = p0 // TILE_PIXELS
         _elssim_tile(rng, _xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
                      self.hot_tiles[ti], self.gb, self.gc, self.omf, self.dinv, self.has_dark, self.gain,
                      self.hot_mu, self.hot_sigma, self.theta,
-                     state["rem"], state["dark_next"], state["refr"], state["v"], out)
+                     state["rem"], state["dark_next"], state["refr"], state["guard"], state["v"], out)
 
 
 class IdealFast(_FastModel):
