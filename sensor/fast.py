@@ -223,6 +223,61 @@ if HAVE_NUMBA:
             xi += 1
         return xi
 
+    @_jit_inline
+    def _lockstep(rng, xs, R, w, i, lo, nk, a, n, m0, c0, nt, gb, gc, omf, dinv, rem, dark_next, refr, guard,
+                  out, l0v, slv, rmv, jdv, flag, idx):
+        """Piece ``i`` of sub-chunk ``c0`` for every pixel, one interval at a time (see _elssim_tile)."""
+        big = np.int64(1) << np.int64(40)
+        for t in range(nt):
+            p = c0 + t
+            s = 0.0
+            l0 = 0.0
+            sl = 0.0
+            for r in range(nk):
+                x = np.float64(R[lo + r, p])
+                s += w[i, 0, r] * x
+                l0 += w[i, 1, r] * x
+                sl += w[i, 2, r] * x
+            l0v[t] = l0
+            slv[t] = sl
+            rp = rem[p] + s  # undo pass 1
+            if refr[p]:
+                rp += (1.0 - omf[p]) * l0
+            rmv[t] = rp
+            jdv[t] = dark_next[p] - a if rp != np.inf else big  # hot pixels: never here
+        for q in range(n):
+            for t in range(nt):  # vectorised
+                r_ = rmv[t] - (l0v[t] + slv[t] * q)
+                rmv[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(jdv[t] == q)
+            cnt = 0
+            for t in range(nt):
+                idx[cnt] = t
+                cnt += flag[t]
+            m = a + q
+            row = m - m0
+            for c_ in range(cnt):
+                t = idx[c_]
+                p = c0 + t
+                out[row, p >> 3] |= np.uint8(1 << (p & 7))
+                rp = _gamma(rng, xs, gb[p], gc[p])
+                if q + 1 < n:  # the next interval is the refractory one: fold f * lambda into the target
+                    rp += (1.0 - omf[p]) * (l0v[t] + slv[t] * (q + 1))
+                rmv[t] = rp
+                if jdv[t] == q:
+                    jdv[t] = q + _geometric(rng, dinv[p])
+                flag[t] = 2  # spiked at q
+        for t in range(nt):
+            p = c0 + t
+            if rmv[t] == np.inf:
+                continue
+            rem[p] = rmv[t]
+            rf = np.uint8(1) if flag[t] == 2 else np.uint8(0)  # spiked in the last interval
+            refr[p] = rf
+            dn = a + jdv[t]
+            dark_next[p] = dn
+            guard[p] = -1 if rf else dn
+
     @_jit
     def _elssim_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
                      gb, gc, omf, dinv, has_dark, gain, hot_mu, hot_sigma, theta,
@@ -240,6 +295,10 @@ if HAVE_NUMBA:
         npc = start.size
         flag = np.zeros(SUB_PIXELS, np.uint8)
         idx = np.empty(SUB_PIXELS + 1, np.int64)
+        l0v = np.empty(SUB_PIXELS)
+        slv = np.empty(SUB_PIXELS)
+        rmv = np.empty(SUB_PIXELS)
+        jdv = np.empty(SUB_PIXELS, np.int64)
         # sub-chunks of SUB_PIXELS pixels, all pieces of the block each: the state stays in L1/L2
         for c0 in range(p0, p1, SUB_PIXELS):
             c1 = min(c0 + SUB_PIXELS, p1)
@@ -276,6 +335,12 @@ if HAVE_NUMBA:
                 for t in range(nt):
                     idx[cnt] = t
                     cnt += flag[t]
+                if cnt * 4 > nt and n > 1:
+                    # most pixels spike here (bright light): step all pixels interval by interval in
+                    # lock-step, vectorised; the same algorithm as below, without per-pixel branches
+                    _lockstep(rng, xs, R, w, i, lo, nk, a, n, m0, c0, nt, gb, gc, omf, dinv, rem, dark_next,
+                              refr, guard, out, l0v, slv, rmv, jdv, flag, idx)
+                    continue
                 for c_ in range(cnt):
                     p = c0 + idx[c_]
                     if rem[p] == np.inf:
@@ -356,69 +421,95 @@ if HAVE_NUMBA:
 
     @_jit
     def _ideal_tile(R, start, length, lo_, nk_, w, m0, p0, p1, theta, v, out):
-        for i in range(start.size):
-            a = m0 + start[i]
-            n = length[i]
-            lo = lo_[i]
-            nk = nk_[i]
-            for p in range(p0, p1):
-                s = 0.0
-                for r in range(nk):
-                    s += w[i, 0, r] * np.float64(R[lo + r, p])
-                vp = v[p]
-                if vp + s < theta:
-                    v[p] = vp + s
-                    continue
-                if n == 1:  # one interval: the reference's very operation
-                    vp += s
-                    if vp >= theta:
+        npc = start.size
+        flag = np.zeros(SUB_PIXELS, np.uint8)
+        idx = np.empty(SUB_PIXELS + 1, np.int64)
+        for c0 in range(p0, p1, SUB_PIXELS):
+            c1 = min(c0 + SUB_PIXELS, p1)
+            nt = c1 - c0
+            vs = v[c0:c1]
+            for i in range(npc):
+                a = m0 + start[i]
+                n = length[i]
+                lo = lo_[i]
+                nk = nk_[i]
+                # ---- pass 1 (vectorised): add the piece when the charge stays below threshold
+                for t in range(nt):
+                    s = 0.0
+                    for r in range(nk):
+                        s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
+                    vv = vs[t] + s
+                    f = vv >= theta
+                    flag[t] = np.uint8(f)
+                    vs[t] = vs[t] if f else vv
+                cnt = 0
+                for t in range(nt):
+                    idx[cnt] = t
+                    cnt += flag[t]
+                # ---- pass 2: the pixels that reach the threshold in this piece, interval by interval
+                for c_ in range(cnt):
+                    t = idx[c_]
+                    p = c0 + t
+                    vp = vs[t]
+                    if n == 1:  # one interval: the reference's very operation, V += lambda_m
                         out[a - m0, p >> 3] |= np.uint8(1 << (p & 7))
-                        vp = 0.0
-                    v[p] = vp
-                    continue
-                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
-                for q in range(n):
-                    vp += l0 + sl * q
-                    if vp >= theta:
-                        out[a + q - m0, p >> 3] |= np.uint8(1 << (p & 7))
-                        vp = 0.0
-                v[p] = vp
+                        vs[t] = 0.0
+                        continue
+                    s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    for q in range(n):
+                        vp += l0 + sl * q
+                        if vp >= theta:
+                            out[a + q - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                            vp = 0.0
+                    vs[t] = vp
 
     @_jit
     def _isi_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, gb, gc, gain, dark_e, tau, out):
-        for i in range(start.size):
-            a = m0 + start[i]
-            n = length[i]
-            end = a + n
-            lo = lo_[i]
-            nk = nk_[i]
-            for p in range(p0, p1):
-                if tau[p] >= end:  # False for NaN (not drawn)
-                    continue
-                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
-                if tau[p] != tau[p] and dark_e[p] <= 0.0 and l0 <= 0.0 and l0 + sl * (n - 1) <= 0.0:
-                    continue  # no charge anywhere in this piece
-                for q in range(n):
-                    m = a + q
-                    qq = gain[p] * (l0 + sl * q) + dark_e[p]
-                    t = tau[p]
-                    if t != t:
-                        if qq > 0.0:
-                            t = m + _gamma(rng, xs, gb[p], gc[p]) / qq
-                        else:
-                            continue
-                    if t < m + 1:
-                        out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
-                        while t < m + 1:
+        npc = start.size
+        flag = np.zeros(SUB_PIXELS, np.uint8)
+        idx = np.empty(SUB_PIXELS + 1, np.int64)
+        for c0 in range(p0, p1, SUB_PIXELS):
+            c1 = min(c0 + SUB_PIXELS, p1)
+            nt = c1 - c0
+            ts = tau[c0:c1]
+            for i in range(npc):
+                a = m0 + start[i]
+                n = length[i]
+                end = a + n
+                lo = lo_[i]
+                nk = nk_[i]
+                # pass 1: pixels whose next firing falls in this piece (or is not drawn yet: NaN)
+                for t_ in range(nt):
+                    flag[t_] = np.uint8(not (ts[t_] >= end))
+                cnt = 0
+                for t_ in range(nt):
+                    idx[cnt] = t_
+                    cnt += flag[t_]
+                for c_ in range(cnt):
+                    p = c0 + idx[c_]
+                    s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    if tau[p] != tau[p] and dark_e[p] <= 0.0 and l0 <= 0.0 and l0 + sl * (n - 1) <= 0.0:
+                        continue  # no charge anywhere in this piece
+                    for q in range(n):
+                        m = a + q
+                        qq = gain[p] * (l0 + sl * q) + dark_e[p]
+                        t = tau[p]
+                        if t != t:
                             if qq > 0.0:
-                                t = t + _gamma(rng, xs, gb[p], gc[p]) / qq
+                                t = m + _gamma(rng, xs, gb[p], gc[p]) / qq
                             else:
-                                t = np.nan
-                                break
-                    tau[p] = t
-                    if t >= end:
-                        break
-
+                                continue
+                        if t < m + 1:
+                            out[m - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                            while t < m + 1:
+                                if qq > 0.0:
+                                    t = t + _gamma(rng, xs, gb[p], gc[p]) / qq
+                                else:
+                                    t = np.nan
+                                    break
+                        tau[p] = t
+                        if t >= end:
+                            break
 
 if HAVE_NUMBA:
     @_jit
