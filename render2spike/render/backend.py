@@ -123,5 +123,6 @@ def mitsuba(variant: str | None = None):
     if "spectral" not in chosen:
         raise DependencyError(f"render2spike needs a spectral Mitsuba variant, got '{chosen}'")
     mi.set_variant(chosen)
+    mi.set_log_level(mi.LogLevel.Error)  # no per-render chatter; errors still raise
     _STATE["mi"] = mi
     return mi

@@ -23,7 +23,7 @@ from sensor.errors import InputError
 from sensor.units import photoelectron_rate
 
 from . import backend
-from .builder import SENSOR_KEY, build_dict, to_transform
+from .builder import SAMPLER, build_dict, to_transform
 from .photometry import cos4_map, direct_raw_e, emitter_scale, to_physical
 from .scene import Scene, spectrum_curve
 
@@ -128,15 +128,32 @@ class SceneRenderer:
             self._names = [bmp.struct_()[i].name for i in range(bmp.channel_count())]
         return self._names
 
+    def effective_spp(self, spp: int) -> int:
+        """The sample count the (stratified) sampler really takes for a request of ``spp`` (rounds up)."""
+        cache = self.__dict__.setdefault("_spp_cache", {})
+        if spp not in cache:
+            s = self.mi.load_dict({"type": SAMPLER, "sample_count": int(spp)})
+            cache[spp] = int(s.sample_count())
+        return cache[spp]
+
+    def frame_spp(self, spp: int) -> tuple[int, int]:
+        """(samples per half, halves) used for a request of ``spp``: two equal halves unless spp == 1."""
+        if int(spp) <= 1:
+            return 1, 1
+        return self.effective_spp((int(spp) + 1) // 2), 2
+
     def render_frame(self, t_s: float, base_seed: int, spp: int) -> dict:
         """Physical frame at ``t_s`` [s]: ``phi`` [e-/(s m^2)], ``lux`` [lux], ``phi_var`` (MC variance of phi).
 
-        Renders two halves (ceil(spp/2), floor(spp/2)) with independent seeds;
-        with spp = 1 there is no variance estimate (``phi_var`` is None).
+        Renders two equal halves with independent seeds (``frame_spp``); their
+        difference estimates the per-pixel Monte Carlo variance. With spp = 1
+        there is no variance estimate (``phi_var`` is None). ``spp`` in the
+        result is the total number of samples per pixel actually taken.
         """
         sa, sb = frame_seeds(base_seed, t_s, 2)
-        na = (int(spp) + 1) // 2
-        nb = int(spp) - na
+        half, halves = self.frame_spp(spp)
+        na, nb = half, (half if halves == 2 else 0)
+        spp = na + nb
         pa, ea = self.render_raw(t_s, sa, na)
         if nb > 0:
             pb, eb = self.render_raw(t_s, sb, nb)

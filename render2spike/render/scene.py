@@ -29,7 +29,7 @@ RENDER_DEFAULTS = {
     "seed": 0,
     "keyframe_rate_hz": 1000.0,
     "adaptive": {"enabled": True, "tolerance": 0.1, "max_rate_hz": 8000.0},
-    "noise": {"window_intervals": 64, "target_ratio": 0.2, "pilot_spp": 8, "min_spp": 4, "max_spp": 1024},
+    "noise": {"window_intervals": 64, "target_ratio": 0.2, "pilot_spp": 4, "min_spp": 4, "max_spp": 1024},
     "meter_spp": 16384,
 }
 CAMERA_DEFAULTS = {"transmission": 0.9, "position": [0.0, 0.0, 1.0], "look_at": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0]}
