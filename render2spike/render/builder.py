@@ -140,6 +140,32 @@ def emitter_sampling_weights(scene: Scene, motions: dict | None = None) -> dict:
     return {k: float(max(v / total, 1e-3)) for k, v in w.items()}
 
 
+def add_xml(mi, scene: Scene, d: dict) -> None:
+    """Add the shapes and the non-surface emitters of the scene's Mitsuba XML file to ``d``.
+
+    The XML's sensors and integrator are ignored (the scene file's camera and
+    the path tracer are used). Its shapes are static and keep their ids as
+    ``xml_<id>``. Point, spot and directional emitters are refused when a
+    light level is set, because the irradiance meter cannot see delta lights;
+    define those in ``lights`` instead.
+    """
+    path = scene.file(scene.data["xml"], "xml")
+    try:
+        xs = mi.load_file(str(path), optimize=False)
+    except Exception as exc:
+        raise InputError(f"Mitsuba cannot load this XML scene: {exc}", path=path) from exc
+    for j, sh in enumerate(xs.shapes()):
+        d[f"xml_{sh.id() or j}"] = sh
+    for j, em in enumerate(xs.emitters()):
+        if mi.has_flag(em.flags(), mi.EmitterFlags.Surface):
+            continue  # area emitters come with their shapes
+        if mi.has_flag(em.flags(), mi.EmitterFlags.Delta):
+            raise InputError("the XML holds a point/spot/directional emitter; the light level cannot be "
+                             "measured for delta lights in XML files: define it under 'lights' instead",
+                             path=path, field="xml")
+        d[f"xml_emitter_{em.id() or j}"] = em
+
+
 def to_transform(mi, m: np.ndarray):
     return mi.ScalarTransform4f(np.asarray(m, np.float64).tolist())
 
@@ -202,6 +228,8 @@ def build_dict(mi, scene: Scene, *, spp: int = 4, for_meter: dict | None = None)
         else:
             d[key] = {"type": "constant", "radiance": spec}
         d[key]["sampling_weight"] = weights[key]
+    if "xml" in scene.data:
+        add_xml(mi, scene, d)
     for i, obj in enumerate(scene.data["objects"]):
         where = f"objects.{i}."
         key = obj["name"]

@@ -104,3 +104,29 @@ def test_occluded_reference_is_an_error(write_scene):
     p = write_scene({"reference": {"point": [0, 0, 0], "normal": [0, 0, -1]}})  # facing away from the sun
     with pytest.raises(InputError, match="no light reaches the reference"):
         SceneRenderer(load_scene(p))
+
+
+XML = """<scene version="3.0.0">
+  <shape type="rectangle" id="floor"><transform name="to_world"><scale value="5"/></transform>
+    <bsdf type="diffuse"><float name="reflectance" value="0.5"/></bsdf></shape>
+  <emitter type="constant"><spectrum name="radiance" value="400:1, 800:1"/></emitter>
+  <sensor type="perspective"><film type="hdrfilm"/></sensor>
+</scene>
+"""
+
+
+def test_xml_scene_light_level(tmp_path, write_scene):
+    """A plane lit by a uniform sky from a Mitsuba XML file: E_img = rho E T / (4 N^2) with E from the meter."""
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    (tmp_path / "room.xml").write_text(XML)
+    p = write_scene({"xml": "room.xml", "lights": [], "objects": [],
+                     "reference": {"point": [0, 0, 0], "normal": [0, 0, 1]}})
+    r = SceneRenderer(load_scene(p))
+    f = r.render_frame(0.0, 0, 32)
+    # the 5 m plane seen from 1 m fills the view; each pixel sees rho E / pi with E = 100 lux from the whole sky
+    # (the 10 m plane blocks the lower hemisphere for both the meter and the plane)
+    ratio = f["lux"] / (RHO * LUX * T * r.cos4 / (4 * N ** 2))
+    se = np.sqrt(f["phi_var"].mean() / f["phi"].mean() ** 2 / f["phi"].size)
+    meter_rel = r.calibration["raw_e_meter_stderr"] / r.calibration["raw_e_meter"]
+    assert abs(ratio.mean() - 1) < 3.9 * np.hypot(se, meter_rel) + 2e-3, ratio.mean()
