@@ -179,9 +179,11 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         rate_var = None if f["phi_var"] is None else f["phi_var"] * rate_scale ** 2
         ratio = render_noise_ratio(f["phi"] * rate_scale, rate_var, W, K)
         ratios.append(ratio)
-        name = frame_filename(len(state["frames"]) + 0)
-        while (out / name).exists() and name not in {v["file"] for v in state["frames"].values()}:
-            name = frame_filename(int(name[6:12]) + 1)
+        used = {v["file"] for v in state["frames"].values()}
+        idx = len(state["frames"])
+        while frame_filename(idx) in used:  # files not in the state are leftovers of this folder: reusable
+            idx += 1
+        name = frame_filename(idx)
         attrs = {"spp": int(spp), "render_noise_ratio": float(ratio), "render_noise_window_intervals": W,
                  "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
