@@ -39,7 +39,7 @@ from .errors import CalibrationError
 from .fileio import provenance, write_json_atomic
 from .profile import SensorProfile
 from .spikefile import read_spikes
-from .theory import RateInverter, fit_hot_pixel
+from .theory import fit_hot_pixel, invert_renewal_rate
 
 #: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
 DEFAULT_HOT_THRESHOLD = 0.02
@@ -174,8 +174,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         say(f"hot pixels: {hot_idx.size}")
 
     # ---- flat fields: effective photoelectron rates -> PRNU gain
-    f_ref = float(np.median(base.refractory_fraction))
-    inverter = RateInverter(base.threshold_e, f_ref, p_dark_max=float(p_normal[~hot].max()) if (~hot).any() else 0.0)
+    f_ref = base.refractory_fraction.astype(np.float64)
     lam_levels = []
     flat_ints = []
     rates_levels = []
@@ -185,7 +184,8 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
             raise CalibrationError(f"flat recording {i} is {s.shape[1:]}, the dark recordings are {shape}")
         r = s.mean(axis=0, dtype=np.float64)
         rates_levels.append(r)
-        lam_levels.append(inverter(r, p_normal))
+        # a gain-1 pixel (k = theta) with this pixel's dark probability and refractory time
+        lam_levels.append(invert_renewal_rate(r, base.threshold_e, f_ref, p_normal))
         flat_ints.append(int(s.shape[0]))
         say(f"flat {i + 1}/{len(flat)}: mean spike rate {r.mean():.4f} per interval")
     lam = np.stack(lam_levels)  # (K, H, W)
@@ -193,7 +193,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     usable = []
     for kk in range(lam.shape[0]):
         mean_rate = rates_levels[kk][normal].mean()
-        ok = np.isfinite(lam[kk][normal]).all() and mean_rate > 2 * max(median_p, 1e-6) and mean_rate < 0.9
+        ok = mean_rate > 2 * max(median_p, 1e-6) and mean_rate < 0.9
         usable.append(bool(ok))
     if sum(usable) < 1:
         raise CalibrationError("no flat-field level has a usable signal (mean spike rate must be above twice the "

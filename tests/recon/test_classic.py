@@ -71,11 +71,11 @@ def test_invert_renewal_rate_round_trip():
     assert invert_renewal_rate(0.001, 200, 1 / 250, 0.002) == 0.0
 
 
-def test_renewal_rate_matches_sensor_theory_if_present():
-    theory = pytest.importorskip("sensor.theory")
+def test_renewal_rate_matches_direct_summation_of_the_isi_law():
+    from sensor import theory  # isi_moments sums S(n) term by term: an independent route to the same number
     lam = np.array([2.0, 20.0, 120.0])
-    np.testing.assert_allclose(renewal_spike_rate(lam, 200, 0.004, 0.001),
-                               theory.spike_rate(lam, 200, 0.001, 0.004), rtol=1e-7)
+    direct = [1.0 / theory.isi_moments(x, 200, 0.001, 0.004)[0] for x in lam]
+    np.testing.assert_allclose(renewal_spike_rate(lam, 200, 0.004, 0.001), direct, rtol=1e-7)
 
 
 def test_tfp_deadtime_unbiased_on_constant_input(z):
