@@ -64,7 +64,7 @@ from .effects import count_threshold, dark_event_probability
 from .models import SpikeModel, register_fast
 from .profile import SensorProfile
 from .rates import Segments
-from .simulate import pack_frames, unpack_frames  # noqa: F401  (re-exported)
+from .spikefile import pack_frames, unpack_frames  # noqa: F401  (re-exported)
 
 try:  # pragma: no cover - exercised by the environment, not by a test toggle
     import numba

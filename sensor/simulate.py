@@ -10,19 +10,7 @@ from .errors import InputError
 from .models import SpikeModel, block_generator, get_model
 from .profile import SensorProfile
 from .rates import RateSchedule
-
-
-def pack_frames(spikes) -> np.ndarray:
-    """bool (n, H, W) -> uint8 (n, ceil(H*W/8)): pixel p = r*W + c in byte p//8, bit p%8 (LSB first)."""
-    s = np.asarray(spikes, bool)
-    return np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little")
-
-
-def unpack_frames(bits, shape) -> np.ndarray:
-    """Inverse of :func:`pack_frames`: uint8 (n, ceil(H*W/8)) -> bool (n, H, W)."""
-    h, w = shape
-    bits = np.asarray(bits, np.uint8)
-    return np.unpackbits(bits, axis=1, count=h * w, bitorder="little").view(bool).reshape(bits.shape[0], h, w)
+from .spikefile import pack_frames, unpack_frames  # noqa: F401  (the one bit layout; re-exported)
 
 
 class SpikeSimulator:

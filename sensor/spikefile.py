@@ -33,6 +33,32 @@ SPIKES_FORMAT = "render2spike-spikes"
 SPIKES_VERSION = 1
 
 
+# ------------------------------------------------------------------ bit layout
+def pack_frames(spikes) -> np.ndarray:
+    """bool (n, H, W) -> uint8 (n, ceil(H*W/8)): pixel p = r*W + c in byte p//8, bit p%8 (LSB first).
+
+    The in-memory and container layout (image orientation, no flip).
+    """
+    s = np.asarray(spikes, bool)
+    return np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little")
+
+
+def unpack_frames(bits, shape) -> np.ndarray:
+    """Inverse of :func:`pack_frames`: uint8 (n, ceil(H*W/8)) -> bool (n, H, W)."""
+    h, w = shape
+    bits = np.asarray(bits, np.uint8)
+    return np.unpackbits(bits, axis=1, count=h * w, bitorder="little").view(bool).reshape(bits.shape[0], h, w)
+
+
+def packed_to_dat(bits, height: int, width: int) -> np.ndarray:
+    """Packed image-orientation frames -> .dat frames (rows bottom-up), without unpacking when W % 8 == 0."""
+    bits = np.asarray(bits, np.uint8)
+    if width % 8 == 0:
+        n = bits.shape[0]
+        return np.ascontiguousarray(bits.reshape(n, height, width // 8)[:, ::-1, :]).reshape(n, -1)
+    return pack_dat_frames(unpack_frames(bits, (height, width)))
+
+
 # ----------------------------------------------------------------------- .dat
 def pack_dat_frames(spikes) -> np.ndarray:
     """bool (T, H, W) image-orientation spikes -> uint8 (T, H*W/8) .dat frames (flipped, LSB first)."""
@@ -42,14 +68,12 @@ def pack_dat_frames(spikes) -> np.ndarray:
     T, H, W = s.shape
     if (H * W) % 8:
         raise SpikeFileError(f"H*W = {H * W} is not a multiple of 8; .dat frames need whole bytes")
-    return np.packbits(s[:, ::-1, :].reshape(T, H * W), axis=1, bitorder="little")
+    return pack_frames(s[:, ::-1, :])
 
 
 def unpack_dat_frames(frames, height: int, width: int) -> np.ndarray:
     """uint8 (T, H*W/8) .dat frames -> bool (T, H, W) in image orientation."""
-    T = frames.shape[0]
-    bits = np.unpackbits(frames, axis=1, bitorder="little", count=height * width).astype(bool)
-    return bits.reshape(T, height, width)[:, ::-1, :]
+    return unpack_frames(frames, (height, width))[:, ::-1, :]
 
 
 def write_dat(path, spikes) -> Path:
@@ -120,7 +144,7 @@ def write_spikes(path, spikes=None, *, packed=None, height=None, width=None, int
         if s.ndim != 3:
             raise SpikeFileError(f"spikes must be (T, H, W); got {s.shape}")
         T, height, width = s.shape
-        packed = np.packbits(s.reshape(T, -1), axis=1, bitorder="little")
+        packed = pack_frames(s)
     meta = {"format": SPIKES_FORMAT, "version": SPIKES_VERSION, "height": int(height), "width": int(width),
             "n_intervals": int(packed.shape[0]), "interval_s": float(interval_s), "model": model,
             "implementation": implementation, "profile_id": profile_id, "seed": seed, "source": str(source),
@@ -161,9 +185,7 @@ def read_spikes(path, height: int = 250, width: int = 400, drop_columns: int = 0
     meta = read_spikes_meta(path)
     with np.load(path, allow_pickle=False) as z:
         packed = z["packed"]
-    H, W = meta["height"], meta["width"]
-    s = np.unpackbits(packed, axis=1, bitorder="little", count=H * W).astype(bool).reshape(-1, H, W)
-    return s, meta
+    return unpack_frames(packed, (meta["height"], meta["width"])), meta
 
 
 class SpikeWriter:
@@ -197,16 +219,25 @@ class SpikeWriter:
     def write(self, spikes) -> None:
         """Append bool spikes (n, H, W) in image orientation."""
         s = np.asarray(spikes, bool)
-        if s.shape[0] == 0:
+        if s.shape[0]:
+            self.write_packed(pack_frames(s), s.shape[1:])
+
+    def write_packed(self, bits, shape) -> None:
+        """Append packed frames uint8 (n, ceil(H*W/8)) (:func:`pack_frames` layout) of frame ``shape`` (H, W)."""
+        bits = np.asarray(bits, np.uint8)
+        if bits.shape[0] == 0:
             return
+        shape = tuple(int(x) for x in shape)
         if self.shape is None:
-            self.shape = s.shape[1:]
-        self.n_intervals += s.shape[0]
-        self.n_spikes += int(s.sum())
+            self.shape = shape
+        elif shape != self.shape:
+            raise SpikeFileError(f"frame shape changed from {self.shape} to {shape}", path=self.path)
+        self.n_intervals += bits.shape[0]
+        self.n_spikes += int(np.unpackbits(bits).sum(dtype=np.int64)) if bits.size else 0
         if self.kind == "dat":
-            pack_dat_frames(s).tofile(self._fh)
+            packed_to_dat(bits, *shape).tofile(self._fh)
         else:
-            self._blocks.append(np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little"))
+            self._blocks.append(bits)
 
     def close(self) -> Path:
         if self.kind == "dat":

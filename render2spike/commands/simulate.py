@@ -155,11 +155,11 @@ def run(args) -> int:
                      extra=extra) as writer, \
             tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
         for rate, t in src.chunks(profile, max(1, args.chunk)):
-            for block in sim.iter_feed(rate, t):
-                writer.write(block)
-                bar.update(block.shape[0])
-        last = sim.finish()
-        writer.write(last)
+            for bits in sim.iter_feed_packed(rate, t):  # bit-packed blocks: 1 bit per pixel-interval
+                writer.write_packed(bits, profile.shape)
+                bar.update(bits.shape[0])
+        last = sim.finish_packed()
+        writer.write_packed(last, profile.shape)
         bar.update(last.shape[0])
     dt = time.perf_counter() - t0
     n = writer.n_intervals
