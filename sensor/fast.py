@@ -464,7 +464,7 @@ if HAVE_NUMBA:
                     vs[t] = vp
 
     @_jit
-    def _isi_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, gb, gc, gain, dark_e, tau, out):
+    def _isi_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, gb, gc, dark_q, tau, out):
         npc = start.size
         flag = np.zeros(SUB_PIXELS, np.uint8)
         idx = np.empty(SUB_PIXELS + 1, np.int64)
@@ -488,11 +488,11 @@ if HAVE_NUMBA:
                 for c_ in range(cnt):
                     p = c0 + idx[c_]
                     s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
-                    if tau[p] != tau[p] and dark_e[p] <= 0.0 and l0 <= 0.0 and l0 + sl * (n - 1) <= 0.0:
+                    if tau[p] != tau[p] and dark_q[p] <= 0.0 and l0 <= 0.0 and l0 + sl * (n - 1) <= 0.0:
                         continue  # no charge anywhere in this piece
                     for q in range(n):
                         m = a + q
-                        qq = gain[p] * (l0 + sl * q) + dark_e[p]
+                        qq = (l0 + sl * q) + dark_q[p]  # photoelectron-equivalents per interval
                         t = tau[p]
                         if t != t:
                             if qq > 0.0:
@@ -652,15 +652,15 @@ class ISIFast(_FastModel):
         k = count_threshold(p.threshold_e, p.prnu_gain).reshape(-1)
         self.gb = k - 1.0 / 3.0
         self.gc = 1.0 / np.sqrt(9.0 * self.gb)
-        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
-        self.dark_e = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e).reshape(-1)
+        # counts throughout (see models.ISIModel): the gain enters once, through k
+        self.dark_q = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain).reshape(-1)
 
     def init_state(self) -> dict:
         return {"m": 0, "tau": np.full(self.n_pixels, np.nan)}
 
     def _tile(self, seg, state, rng, p0, p1, out):
         _isi_tile(rng, _xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
-                  self.gb, self.gc, self.gain, self.dark_e, state["tau"], out)
+                  self.gb, self.gc, self.dark_q, state["tau"], out)
 
 
 if HAVE_NUMBA:

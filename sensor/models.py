@@ -137,10 +137,13 @@ class ISIModel(SpikeModel):
     interval by interval. After a spike at continuous time tau [intervals], the
     next one comes at ``tau + ISI`` with
 
-        ISI ~ Gamma(k, 1 / q),  q = g * lambda(tau) + (mu_DC + hot_mu) * theta   [e-/interval]
+        ISI ~ Gamma(k, 1 / q),  q = lambda(tau) + (mu_DC + hot_mu) * theta / g   [photoelectrons/interval]
 
-    i.e. the time to collect ``k = ceil(theta / g)`` electrons at the constant
-    charge rate ``q`` seen when the ISI starts. Its differences from ELSSim are
+    i.e. the time to collect ``k = ceil(theta / g)`` photoelectrons at the
+    constant rate ``q`` seen when the ISI starts (counts throughout, so the
+    PRNU gain enters once, through ``k``; dark and hot-pixel currents are
+    charges ``mu theta`` per interval, i.e. ``mu theta / g`` photoelectron
+    equivalents). Its differences from ELSSim are
     exactly the ones the paper criticises: dark current is a current that adds
     to the photocurrent (coupled with light, not an independent per-interval
     event), the intensity is frozen over each ISI, there is no refractory
@@ -156,8 +159,8 @@ class ISIModel(SpikeModel):
         super().__init__(profile)
         p = profile
         self.k = count_threshold(p.threshold_e, p.prnu_gain)
-        self.gain = p.prnu_gain.astype(np.float64)
-        self.dark_e = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e)
+        # dark + hot current as photoelectron equivalents per interval
+        self.dark_q = (p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain.astype(np.float64)
 
     def init_state(self) -> dict:
         # tau: time of the next firing [intervals since stream start]; NaN = not drawn (start, or no charge)
@@ -174,19 +177,19 @@ class ISIModel(SpikeModel):
         tau = state["tau"]
         m_start = state["m"]
         out = np.zeros(lam.shape, bool)
-        gain_f, dark_f = self.gain.reshape(-1), self.dark_e.reshape(-1)
+        dark_f = self.dark_q.reshape(-1)
         for i in range(lam.shape[0]):
             m = m_start + i
             lam_f = lam[i].reshape(-1).astype(np.float64)
             tf = tau.reshape(-1)
             new = np.flatnonzero(np.isnan(tf))
             if new.size:  # stream start: integration begins at the start of interval m
-                self._draw(new, gain_f[new] * lam_f[new] + dark_f[new], float(m), tau, rng)
+                self._draw(new, lam_f[new] + dark_f[new], float(m), tau, rng)
             idx = np.flatnonzero(tf < m + 1)
             if idx.size:
                 out[i].reshape(-1)[idx] = True
             while idx.size:
-                self._draw(idx, gain_f[idx] * lam_f[idx] + dark_f[idx], tf[idx], tau, rng)
+                self._draw(idx, lam_f[idx] + dark_f[idx], tf[idx], tau, rng)
                 idx = idx[tf[idx] < m + 1]
         state["m"] = m_start + lam.shape[0]
         return out
