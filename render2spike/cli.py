@@ -64,6 +64,12 @@ def main(argv=None) -> int:
             raise
         print(f"render2spike: error: {exc}", file=sys.stderr)
         return 2
+    except (OSError, ValueError) as exc:  # last resort: a file or value problem we did not anticipate
+        if os.environ.get("RENDER2SPIKE_DEBUG"):
+            raise
+        print(f"render2spike: error: {type(exc).__name__}: {exc} (set RENDER2SPIKE_DEBUG=1 for the traceback)",
+              file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("render2spike: interrupted", file=sys.stderr)
         return 130

@@ -38,5 +38,5 @@ fi
 
 # torch is pinned to 2.13.0 in pyproject (the CPU wheel is provided locally on the project machines;
 # elsewhere add: --extra-index-url https://download.pytorch.org/whl/cpu)
-python3 -m pip install -q --disable-pip-version-check -e ".[all]" 2>&1 | grep -v "^WARNING: Location" || true
+python3 -m pip install -q --disable-pip-version-check -e ".[all]"   # a failed install stops the script (set -e)
 python3 -c "import render2spike, sensor, recon" && echo "setup.sh: render2spike installed ($(python3 -m render2spike --version))"

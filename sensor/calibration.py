@@ -86,7 +86,7 @@ def _isi_stats(trains: list[np.ndarray]):
 
 def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_threshold: float = DEFAULT_HOT_THRESHOLD,
               name: str | None = None, height: int | None = None, width: int | None = None, drop_columns: int = 0,
-              min_hot_isis: int = 20, progress=None):
+              min_hot_isis: int = 20, progress=None, progress_bar: bool = False):
     """Estimate a :class:`SensorProfile` from dark and flat-field recordings.
 
     Parameters
@@ -95,7 +95,9 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         Dark recordings (the paper uses 20). Paths: .dat or spike containers.
     flat : list of (array | path)
         Flat-field recordings (no lens, uniform light), one per brightness level;
-        at least two levels with a usable signal.
+        at least two recordings, of which at least one must have a usable signal
+        (mean spike rate above twice the dark rate and below 0.9); every usable
+        level enters the regression, and more levels give a better estimate.
     base : SensorProfile or str
         Supplies what spike recordings cannot identify: threshold, refractory
         time, pitch, fill factor, QE, clock, interval.
@@ -107,6 +109,8 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         Hot pixels with fewer dark ISIs than this get their mean ISI only (sigma_HP = 0).
     progress : callable, optional
         ``progress(message)`` called as work advances.
+    progress_bar : bool
+        Show a progress bar over the hot-pixel fits (the slow step).
 
     Returns
     -------
@@ -158,7 +162,8 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
             flat_s = s.reshape(s.shape[0], -1)[:, hot_idx]
             for c, j in enumerate(hot_idx):
                 trains[j].append(np.flatnonzero(flat_s[:, c]))
-        for c, j in enumerate(hot_idx):
+        from tqdm import tqdm
+        for c, j in enumerate(tqdm(hot_idx, desc="hot-pixel fits", unit="pixel", disable=not progress_bar)):
             isi = _isi_stats(trains[j])
             r, cc = np.unravel_index(j, shape)
             hot_n_isi[r, cc] = isi.size
@@ -195,6 +200,8 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         mean_rate = rates_levels[kk][normal].mean()
         ok = mean_rate > 2 * max(median_p, 1e-6) and mean_rate < 0.9
         usable.append(bool(ok))
+    if sum(usable) == 1:
+        say("note: only one flat-field level is usable; the PRNU slope rests on it alone (record more levels)")
     if sum(usable) < 1:
         raise CalibrationError("no flat-field level has a usable signal (mean spike rate must be above twice the "
                                f"dark rate {2 * median_p:.2e} and below 0.9 spikes per interval); record brighter "

@@ -121,11 +121,12 @@ def renewal_spike_rate(lam, k, refractory_fraction=0.0, p_dark=0.0, tol: float =
 
     Returns
     -------
-    numpy.ndarray float64, broadcast shape
+    numpy.ndarray float64, the broadcast shape of the inputs (at least 1-D)
         Spikes per interval in [p_dark, 1].
     """
     from scipy import special
     lam, k, f, p = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (lam, k, refractory_fraction, p_dark)))
+    out_shape = lam.shape if lam.ndim else (1,)
     lam, k, f, p = (a.reshape(-1) for a in (lam, k, f, p))
     total = np.ones(lam.shape, np.float64)  # the n = 0 term
     zero = lam <= 0
@@ -146,7 +147,7 @@ def renewal_spike_rate(lam, k, refractory_fraction=0.0, p_dark=0.0, tol: float =
         active = active[~past]
         n += chunk
         chunk = min(chunk * 2, 65536)
-    return 1.0 / total
+    return (1.0 / total).reshape(out_shape)
 
 
 _LAM_REL = np.concatenate([[0.0], np.geomspace(1e-3, 4.0, 320)])  # lambda / k grid of the rate tables

@@ -55,7 +55,7 @@ def run(args) -> int:
     width = args.width or ((base.raw_width or base.width + 16) if args.raw else base.width)
     prof, report = calibrate([Path(f) for f in args.dark], [Path(f) for f in args.flat], base,
                              hot_threshold=args.hot_threshold, name=args.name, height=args.height or base.height,
-                             width=width, drop_columns=drop, progress=print)
+                             width=width, drop_columns=drop, progress=print, progress_bar=True)
     out = prof.save(args.out)
     files = write_report(report, prof, out.with_name(out.stem + "_report"))
     n = report.numbers

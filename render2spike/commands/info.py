@@ -39,7 +39,7 @@ def describe(path, height=250, width=400, raw=False) -> dict:
                 "first_frame_E_mean_lux": float(fr.illuminance_lux.mean()),
                 "first_frame_header": {k: (v if isinstance(v, (int, float, str)) else str(v))
                                        for k, v in fr.header.items()},
-                **{k: fs.manifest[k] for k in ("scene", "target_lux", "provenance") if k in fs.manifest}}
+                **{k: fs.manifest[k] for k in ("scene", "illuminance_lux", "provenance") if k in fs.manifest}}
     if not p.exists() and str(path) in bundled_profiles():
         return {"kind": "sensor profile (bundled)", **SensorProfile.load(str(path)).summary()}
     if not p.exists():
@@ -52,9 +52,13 @@ def describe(path, height=250, width=400, raw=False) -> dict:
         return {"kind": "SpikeCV .dat spike stream", "intervals": n, "height": height, "width": s.shape[2],
                 "mean_spike_rate_per_interval (first 20000)": float(s.mean()) if s.size else 0.0}
     if p.suffix == ".npz":
-        with np.load(p, allow_pickle=False) as z:
-            files = z.files
-            meta = json.loads(bytes(z["meta_json"]).decode()) if "meta_json" in z else {}
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                files = z.files
+                shapes = {k: list(z[k].shape) for k in files}
+                meta = json.loads(bytes(z["meta_json"]).decode()) if "meta_json" in z else {}
+        except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
+            raise InputError(f"not a readable .npz archive ({exc})", path=p) from exc
         fmt = meta.get("format")
         if fmt == "render2spike-sensor-profile":
             return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}
@@ -63,7 +67,7 @@ def describe(path, height=250, width=400, raw=False) -> dict:
             s, _ = read_spikes(p)
             return {"kind": "spike container", **{k: v for k, v in meta.items() if k != "format"},
                     "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
-        return {"kind": "npz arrays", "arrays": {k: list(np.load(p)[k].shape) for k in files}}
+        return {"kind": "npz arrays", "arrays": shapes}
     raise InputError("unknown file type (expected .npz, .dat, a frames folder or a bundled profile name)", path=p)
 
 

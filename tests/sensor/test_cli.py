@@ -84,6 +84,13 @@ def test_calibrate_cli_writes_profile_and_report(tmp_path, capsys):
     assert rep["n_dark_recordings"] == 3 and rep["hot_pixels"] == int(true.hot_mask.sum())
 
 
+def test_info_on_a_bad_npz_is_one_clear_line(tmp_path, capsys):
+    (tmp_path / "bad.npz").write_bytes(b"not a zip archive")
+    assert main(["info", str(tmp_path / "bad.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.npz" in err and "Traceback" not in err
+
+
 def test_info_on_profile_and_spikes(tmp_path, capsys):
     assert main(["info", "vidar-default", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
