@@ -36,18 +36,20 @@ examples:
 """
 
 
-def add_scene_options(p) -> None:
-    """Options shared by `render` and `run`."""
+def add_scene_options(p, seed_help: str = "render base seed (per-frame seeds derive from it; default: the scene's)") -> None:
+    """Options shared by `render` and `run` (``seed_help`` says what --seed seeds in each)."""
     p.add_argument("scene", metavar="SCENE", help="scene YAML file or bundled scene name")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--lux", type=float, metavar="X", help="illuminance at the scene's reference [lux] (overrides the scene)")
     p.add_argument("--duration", type=float, metavar="S", help="clip length [s] (overrides the scene)")
     p.add_argument("--spp", type=int, metavar="N", help="samples per pixel per keyframe (default: noise budget)")
-    p.add_argument("--keyframe-rate", type=float, metavar="HZ", help="base keyframe rate [Hz] before adaptive refinement")
+    p.add_argument("--keyframe-rate", type=float, metavar="HZ",
+                   help="base keyframe rate [Hz] before adaptive refinement; also sets the adaptive maximum to 4x "
+                        "this rate (use --set render.adaptive.max_rate_hz=... to choose it)")
     p.add_argument("--profile", metavar="NAME|PATH", help="sensor profile (sets resolution and pixel pitch)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any scene key, dotted path; list items by index or name (repeatable)")
-    p.add_argument("--seed", type=int, default=None, metavar="N", help="base seed (per-frame seeds derive from it)")
+    p.add_argument("--seed", type=int, default=None, metavar="N", help=seed_help)
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 

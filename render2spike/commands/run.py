@@ -33,7 +33,7 @@ def register(sub) -> None:
     from render2spike.commands.render import add_scene_options
     p = sub.add_parser("run", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_options(p)
+    add_scene_options(p, seed_help="seed of the spike simulation (default 0); --render-seed seeds the render")
     p.add_argument("--model", default="elssim", choices=MODELS, help="spike noise model (default: elssim)")
     p.add_argument("--render-seed", type=int, default=None, metavar="N",
                    help="render base seed (default: the scene's); --seed seeds the spike simulation")

@@ -238,9 +238,11 @@ class Scene:
         h = hashlib.sha256()
         h.update(json.dumps(self.data, sort_keys=True, default=str).encode())
         h.update(json.dumps(self.file_hashes, sort_keys=True).encode())
-        h.update(json.dumps(self.profile.to_meta(), sort_keys=True, default=str).encode())
-        for nm in ("dark_rate", "prnu_gain"):
-            h.update(np.ascontiguousarray(getattr(self.profile, nm)).tobytes())
+        # only what the render depends on: resolution, pixel pitch (focal-plane geometry) and QE (the Phi
+        # response). Dark, PRNU, hot-pixel maps and the threshold act later, in the sensor stage.
+        prof = self.profile
+        h.update(json.dumps({"height": prof.height, "width": prof.width, "pixel_pitch_m": prof.pixel_pitch_m,
+                             "qe": prof.qe.to_dict()}, sort_keys=True, default=str).encode())
         h.update(json.dumps(settings or {}, sort_keys=True, default=str).encode())
         return h.hexdigest()[:16]
 
