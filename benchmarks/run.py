@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
 from scene import KEYFRAME_HZ, MovingScene, lux_to_rate_e  # noqa: E402
+from sensor.units import intervals_to_seconds, seconds_to_intervals  # noqa: E402
 
 LUX = (0.1, 1.0, 5.0, 50.0, 500.0)
 MODELS = ("elssim", "ideal", "isi")
@@ -62,8 +63,8 @@ def _profile(name):
     try:
         return SensorProfile.load(name)
     except Exception:  # no bundled profile yet: a synthetic one like it
-        return SensorProfile.synthetic(250, 400, threshold_e=2000.0, dark_rate=94.0 * 50e-6, dark_rate_spread=0.37,
-                                       prnu_sigma=0.058, hot_pixel_fraction=1e-3, seed=0, name="synthetic-vidar-like")
+        from sensor.vidar import VIDAR_SYNTHETIC
+        return SensorProfile.synthetic(250, 400, **VIDAR_SYNTHETIC, seed=0, name="synthetic-vidar-like")
 
 
 def _warmup(profile, model, implementation) -> float:
@@ -237,7 +238,7 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
              f"Profile: {meta['profile']} ({meta['height']} x {meta['width']}, threshold {meta['threshold_e']:g} e-); "
              f"input: keyframes at 1 kHz of a moving texture (reflectance mean 0.5, f/2, T = 0.9, 5000 K); output: "
              f"bit-packed spike stream written to {meta['sink']}.  ",
-             f"Fast paths: {meta['duration_s']:g} s of camera time ({int(round(meta['duration_s'] / 50e-6))} intervals). "
+             f"Fast paths: {meta['duration_s']:g} s of camera time ({int(round(seconds_to_intervals(meta['duration_s'])))} intervals). "
              f"Reference: {meta['ref_intervals']} intervals, throughput extrapolated (cost per interval is constant). "
              "Real time = 2.0e9 pixel-steps/s (400 x 250 at 20 kHz). JIT/cache-load time is excluded from the "
              "throughput and shown in `jit_s`.", "",
@@ -286,7 +287,7 @@ def main(argv=None):
     for model in a.models:
         for lux in a.lux:
             ref = _subprocess(dict(common, model=model, implementation="reference", lux=lux,
-                                   duration_s=a.ref_intervals * 50e-6))
+                                   duration_s=float(intervals_to_seconds(a.ref_intervals))))
             ref["extrapolated"] = True
             fast = _subprocess(dict(common, model=model, implementation="fast", lux=lux, duration_s=a.duration))
             fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]

@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sensor.units import intervals_to_seconds
+from sensor.vidar import VIDAR_SYNTHETIC
 from sensor.errors import InputError
 from sensor.profile import SensorProfile
 
@@ -46,8 +48,7 @@ DAVIS_SPLIT_FILE = DATA_DIR / "davis2017_split.json"
 #: the synthetic sensor drawn when no profile is named (values of the bundled vidar-default profile, see
 #: docs/sensor.md: threshold 2000 e-, dark 94 Hz = 0.0047 events per 50 us interval, log spread 0.37,
 #: PRNU sigma 0.058, 0.1 % hot pixels)
-DEFAULT_SYNTHETIC = dict(threshold_e=2000.0, dark_rate=94.0 * 50e-6, dark_rate_spread=0.37, prnu_sigma=0.058,
-                         hot_pixel_fraction=1e-3, hot_mu=0.05, hot_mu_spread=0.5, hot_sigma=0.02)
+DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC)
 _KIND_KEYS = {"davis": 1, "rendered": 2, "sdmd": 3}
 
 
@@ -348,7 +349,7 @@ class DavisDataset(_Base):
         idx = [j if j < nf else period - j for j in idx]  # play back and forth
         ys = np.stack([self._frame_cache(name, j)[top:top + ch, left:left + cw] for j in idx])
         rate_kf = ys * np.float32(lux * self.rate_per_lux(prof))
-        t_s = np.arange(n_frames) * self.ipf * prof.interval_s
+        t_s = intervals_to_seconds(np.arange(n_frames) * self.ipf, prof.interval_s)
         lam = interval_rates(rate_kf, t_s, n_intervals=n_int, interval_s=prof.interval_s)
         spikes = self._simulate(lam, prof, sim_seed)
         meta = {"sequence": name, "start_frame": f0, "lux": lux, "crop_top_left": (top, left), "model": self.model,

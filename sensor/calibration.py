@@ -40,6 +40,7 @@ from .fileio import provenance, write_json_atomic
 from .profile import SensorProfile
 from .spikefile import read_spikes
 from .theory import fit_hot_pixel, invert_renewal_rate
+from .units import per_interval_to_hz
 
 #: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
 DEFAULT_HOT_THRESHOLD = 0.02
@@ -230,7 +231,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     )
     numbers = {
         "median_dark_fraction": median_p,
-        "mean_dark_rate_hz": float(mu_dc[normal].mean() / base.interval_s),
+        "mean_dark_rate_hz": float(per_interval_to_hz(mu_dc[normal].mean(), base.interval_s)),
         "hot_pixels": int(hot.sum()),
         "hot_mu_median": float(np.median(hot_mu[hot])) if hot.any() else 0.0,
         "hot_sigma_median": float(np.median(hot_sigma[hot])) if hot.any() else 0.0,
@@ -256,7 +257,7 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     jpath = out_stem.with_suffix(".json")
     write_json_atomic(jpath, {"profile": profile.name, **report.to_dict(), "provenance": provenance()})
     fig, ax = plt.subplots(2, 2, figsize=(11, 8))
-    hz = profile.dark_rate / profile.interval_s
+    hz = per_interval_to_hz(profile.dark_rate, profile.interval_s)
     normal = ~profile.hot_mask
     vals = hz[normal]
     bins = np.geomspace(max(vals[vals > 0].min() if (vals > 0).any() else 1e-1, 1e-1), max(vals.max(), 1.0), 60)

@@ -33,7 +33,7 @@ import numpy as np
 from .errors import ProfileError
 from .fileio import atomic_path, provenance as _provenance
 from .spectral import SpectralCurve
-from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S
+from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, per_interval_to_hz, seconds_to_intervals
 
 PROFILE_FORMAT = "render2spike-sensor-profile"
 PROFILE_VERSION = 1
@@ -167,7 +167,7 @@ class SensorProfile:
     @property
     def refractory_fraction(self) -> np.ndarray:
         """Fraction of the interval after a spike during which no light is collected (Eq. 6)."""
-        return (self.refractory_s / self.interval_s).astype(np.float32)
+        return seconds_to_intervals(self.refractory_s, self.interval_s).astype(np.float32)
 
     @property
     def pixel_area_m2(self) -> float:
@@ -348,7 +348,8 @@ class SensorProfile:
             "pixel_pitch_um": self.pixel_pitch_m * 1e6,
             "fill_factor": self.fill_factor,
             "dark_rate_mean_per_interval": float(self.dark_rate[~hm].mean()) if (~hm).any() else 0.0,
-            "dark_rate_mean_hz": float(self.dark_rate[~hm].mean() / self.interval_s) if (~hm).any() else 0.0,
+            "dark_rate_mean_hz": float(per_interval_to_hz(self.dark_rate[~hm].mean(), self.interval_s))
+            if (~hm).any() else 0.0,
             "hot_pixels": int(hm.sum()),
             "hot_mu_mean": float(self.hot_mu[hm].mean()) if hm.any() else 0.0,
             "prnu_gain_std": float(self.prnu_gain.std()),

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .units import LUMINOUS_EFFICACY_LM_W, photons_per_joule
+from .units import BOLTZMANN_J_K, LUMINOUS_EFFICACY_LM_W, PLANCK_J_S, SPEED_OF_LIGHT_M_S, photons_per_joule
 
 
 @dataclass(frozen=True)
@@ -61,16 +61,29 @@ class SpectralCurve:
         return cls(np.asarray(d["wavelength_nm"]), np.asarray(d["values"]), d.get("unit", "1"), d.get("name", ""))
 
 
-def photopic_v(wavelength_nm):
-    """CIE 1924 photopic luminous efficiency V(lambda), Gaussian-sum approximation.
+#: CIE 1924 photopic luminous efficiency V(lambda) (= the CIE 1931 y-bar), 380-780 nm in 5 nm steps.
+#: Public standard data (CIE 018, ISO 23539 / CIE S 010); V(555 nm) = 1.
+_V_1924_NM0, _V_1924_STEP = 380.0, 5.0
+_V_1924 = np.array([
+    0.000039, 0.000064, 0.00012, 0.000217, 0.000396, 0.00064, 0.00121, 0.00218, 0.004, 0.0073,      # 380-425
+    0.0116, 0.01684, 0.023, 0.0298, 0.038, 0.048, 0.06, 0.0739, 0.09098, 0.1126,                   # 430-475
+    0.13902, 0.1693, 0.20802, 0.2586, 0.323, 0.4073, 0.503, 0.6082, 0.71, 0.7932,                  # 480-525
+    0.862, 0.91485, 0.954, 0.9803, 0.99495, 1.0, 0.995, 0.9786, 0.952, 0.9154,                     # 530-575
+    0.87, 0.8163, 0.757, 0.6949, 0.631, 0.5668, 0.503, 0.4412, 0.381, 0.321,                       # 580-625
+    0.265, 0.217, 0.175, 0.1382, 0.107, 0.0816, 0.061, 0.04458, 0.032, 0.0232,                     # 630-675
+    0.017, 0.01192, 0.00821, 0.005723, 0.004102, 0.002929, 0.002091, 0.001484, 0.001047, 0.00074,  # 680-725
+    0.00052, 0.000361, 0.000249, 0.000172, 0.00012, 0.000085, 0.00006, 0.000042, 0.00003, 0.000021,  # 730-775
+    0.000015,                                                                                      # 780
+])
 
-    Uses the widely used 3-term fit (error < 1 % of peak over 400-700 nm), good
-    enough for the photometric checks of a low-light simulator and free of any
-    downloaded table. Peak 1.0 at 555 nm.
+
+def photopic_v(wavelength_nm):
+    """CIE 1924 photopic luminous efficiency V(lambda) [1], peak 1.0 at 555 nm.
+
+    Linear interpolation of the standard 5 nm table (380-780 nm), 0 outside it.
     """
-    x = np.asarray(wavelength_nm, dtype=np.float64)
-    v = 1.019 * np.exp(-285.4 * (x / 1000.0 - 0.559) ** 2)
-    return np.clip(v, 0.0, None)
+    wl = _V_1924_NM0 + _V_1924_STEP * np.arange(_V_1924.size)
+    return np.interp(np.asarray(wavelength_nm, dtype=np.float64), wl, _V_1924, left=0.0, right=0.0)
 
 
 def electrons_per_lux_second_m2(spectrum: SpectralCurve, qe: SpectralCurve, wl_nm=None) -> float:
@@ -93,8 +106,7 @@ def blackbody_spd(temperature_k: float, wl_nm=None) -> SpectralCurve:
     """Relative spectral power of a black body at ``temperature_k`` [K] (peak-normalised)."""
     wl = np.arange(300.0, 1101.0, 5.0) if wl_nm is None else np.asarray(wl_nm, np.float64)
     lam = wl * 1e-9
-    h, c, k = 6.62607015e-34, 299_792_458.0, 1.380649e-23
-    b = 1.0 / (lam ** 5 * np.expm1(h * c / (lam * k * temperature_k)))
+    b = 1.0 / (lam ** 5 * np.expm1(PLANCK_J_S * SPEED_OF_LIGHT_M_S / (lam * BOLTZMANN_J_K * temperature_k)))
     return SpectralCurve(wl, b / b.max(), unit="relative", name=f"blackbody {temperature_k:g} K")
 
 

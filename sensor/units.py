@@ -26,6 +26,7 @@ import numpy as np
 # --- exact SI constants (2019 SI) -------------------------------------------
 PLANCK_J_S = 6.62607015e-34  #: Planck constant h [J s]
 SPEED_OF_LIGHT_M_S = 299_792_458.0  #: speed of light c [m/s]
+BOLTZMANN_J_K = 1.380649e-23  #: Boltzmann constant k_B [J/K]
 LUMINOUS_EFFICACY_LM_W = 683.002  #: K_m, peak luminous efficacy at 555 nm [lm/W]
 
 # --- spike camera timing ----------------------------------------------------
@@ -77,6 +78,21 @@ def rate_e_to_phi(rate_e, pixel_pitch_m: float, fill_factor: float, interval_s: 
     """Inverse of :func:`photoelectron_rate`: e-/interval -> e-/(s m^2)."""
     scale = float(pixel_pitch_m) ** 2 * float(fill_factor) * float(interval_s)
     return np.asarray(rate_e, dtype=np.float64) / scale
+
+
+def hz_to_per_interval(rate_hz, interval_s: float = INTERVAL_S):
+    """Event rate [Hz] -> expected events per interval (e.g. a dark rate -> mu_DC)."""
+    return np.asarray(rate_hz, dtype=np.float64) * float(interval_s)
+
+
+def per_interval_to_hz(per_interval, interval_s: float = INTERVAL_S):
+    """Expected events per interval -> event rate [Hz]."""
+    return np.asarray(per_interval, dtype=np.float64) / float(interval_s)
+
+
+def mm_to_m(length_mm):
+    """Millimetres -> metres (focal lengths are given in mm in scene files)."""
+    return np.asarray(length_mm, dtype=np.float64) * 1e-3
 
 
 def seconds_to_intervals(t_s, interval_s: float = INTERVAL_S):

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .profile import DATA_DIR, SensorProfile, generic_cmos_qe
-from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S
+from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, hz_to_per_interval
 
 VIDAR_SEED = 20250101
 DARK_RATE_HZ = 94.0  # mean dark spike rate per pixel [Hz]
@@ -49,14 +49,21 @@ PROVENANCE = {
 }
 
 
+#: the statistics of ``vidar-default`` as :meth:`SensorProfile.synthetic` arguments (also used to draw
+#: vidar-like sensors of other sizes, e.g. by the datasets and the benchmark)
+VIDAR_SYNTHETIC = dict(
+    threshold_e=2000.0,
+    dark_rate=float(hz_to_per_interval(DARK_RATE_HZ, INTERVAL_S)), dark_rate_spread=0.37,
+    prnu_sigma=0.058,
+    hot_pixel_fraction=1e-3, hot_mu=0.05, hot_mu_spread=0.5, hot_sigma=0.02,
+    refractory_s=TIME_UNIT_S,
+)
+
+
 def build_vidar_default() -> SensorProfile:
     """Draw the ``vidar-default`` instance (deterministic)."""
     p = SensorProfile.synthetic(
-        250, 400, threshold_e=2000.0,
-        dark_rate=DARK_RATE_HZ * INTERVAL_S, dark_rate_spread=0.37,
-        prnu_sigma=0.058,
-        hot_pixel_fraction=1e-3, hot_mu=0.05, hot_mu_spread=0.5, hot_sigma=0.02,
-        refractory_s=TIME_UNIT_S, seed=VIDAR_SEED, name="vidar-default",
+        250, 400, **VIDAR_SYNTHETIC, seed=VIDAR_SEED, name="vidar-default",
         interval_s=INTERVAL_S, clock_hz=CLOCK_HZ, pixel_pitch_m=20e-6, fill_factor=0.5, raw_width=416,
         qe=generic_cmos_qe(), provenance=dict(PROVENANCE),
     )

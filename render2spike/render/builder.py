@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from sensor.errors import DependencyError, InputError
+from sensor.units import mm_to_m
 
 from .motion import Motion, Pose
 from .photometry import fov_x_deg, lux_response, phi_response
@@ -178,7 +179,7 @@ def build_dict(mi, scene: Scene, *, spp: int = 4, for_meter: dict | None = None)
     """
     prof = scene.profile
     cam = scene.camera
-    f_m = float(cam["focal_length_mm"]) * 1e-3
+    f_m = float(mm_to_m(cam["focal_length_mm"]))
     motions = {}
     d = {"type": "scene", "integrator": {"type": "path", "max_depth": int(scene.render["max_depth"])}}
     if for_meter is None:

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.units import photoelectron_rate
+from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, build_dict, to_transform
@@ -87,7 +87,7 @@ class SceneRenderer:
         self.height, self.width = prof.height, prof.width
         self.f_number = float(cam["f_number"])
         self.transmission = float(cam["transmission"])
-        self.focal_length_m = float(cam["focal_length_mm"]) * 1e-3
+        self.focal_length_m = float(mm_to_m(cam["focal_length_mm"]))
         self.cos4 = cos4_map(prof.height, prof.width, prof.pixel_pitch_m, self.focal_length_m)
         self.load_s = time.perf_counter() - t0
         self.reference = self._reference_point()
