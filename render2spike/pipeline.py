@@ -19,9 +19,14 @@ from sensor.fileio import atomic_path, provenance, write_json_atomic, write_text
 
 
 def simulate_frames(frames_dir, profile, model: str = "elssim", seed: int = 0, progress: bool = True):
-    """Stream a frames folder through :class:`sensor.SpikeSimulator`; returns bool spikes (T, H, W) and frame times."""
+    """Stream a frames folder through :class:`sensor.SpikeSimulator`.
+
+    Returns the spikes as :class:`sensor.spikefile.PackedSpikes` (bit-packed, 1 bit per pixel-interval)
+    and the frame sequence.
+    """
     import sensor
     from sensor.frames import read_frames
+    from sensor.spikefile import PackedSpikes
     seq = read_frames(frames_dir)
     sim = sensor.SpikeSimulator(profile, model, seed)
     parts = []
@@ -33,10 +38,10 @@ def simulate_frames(frames_dir, profile, model: str = "elssim", seed: int = 0, p
     for i in it:
         fr = seq.read(i)
         rate_e = sensor.photoelectron_rate(fr.phi, profile)
-        parts.append(sim.feed(rate_e[None], np.array([fr.time_s])))
-    parts.append(sim.finish())
-    spikes = np.concatenate(parts) if parts else np.zeros((0,) + profile.shape, bool)
-    return spikes, seq
+        parts.extend(sim.iter_feed_packed(rate_e[None], np.array([fr.time_s])))
+    parts.append(sim.finish_packed())
+    packed = np.concatenate(parts) if parts else np.zeros((0, sim.n_bytes), np.uint8)
+    return PackedSpikes(packed, profile.shape), seq
 
 
 def _to_uint8(img, vmax=None):
@@ -47,21 +52,28 @@ def _to_uint8(img, vmax=None):
 
 
 def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
-    """TFP previews: a PNG (truth | TFP window | TFP all) and an animated GIF of TFP windows."""
+    """TFP previews: a PNG (truth | TFP window | TFP all) and an animated GIF of TFP windows.
+
+    ``spikes`` is a :class:`sensor.spikefile.PackedSpikes`; only the windows shown are unpacked.
+    """
     import imageio.v3 as iio
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import sensor
-    from recon.classic import tfp
+    from recon.classic import tfp, window_bounds
+
+    def tfp_at(c):  # TFP of the window centred at interval c, unpacking only that window
+        a, b = window_bounds(T, window, c)
+        return tfp(spikes.window(a, b))
 
     T = spikes.shape[0]
     window = int(max(1, min(window, T)))
     mid = T // 2
     truth_i = int(np.argmin(np.abs(seq.times_s - (seq.times_s[0] + mid * profile.interval_s))))
     truth = sensor.photoelectron_rate(seq.read(truth_i).phi, profile) / profile.threshold_e
-    tfp_win = tfp(spikes, window, mid)
-    tfp_all = tfp(spikes)
+    tfp_win = tfp_at(mid)
+    tfp_all = (spikes.counts() / np.float32(T)).astype(np.float32)
     fig, ax = plt.subplots(1, 3, figsize=(11, 3.2), constrained_layout=True)
     vmax = float(np.percentile(truth, 99.5)) or 1.0
     for a, img, title in zip(ax, (truth, tfp_win, tfp_all),
@@ -80,7 +92,7 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
     gif_frames = []
     vmax_gif = float(np.percentile(tfp_all, 99.5)) * 1.5 or 1.0
     for c in range(window // 2, max(T - window // 2, window // 2 + 1), step):
-        g = _to_uint8(tfp(spikes, window, c), vmax_gif)
+        g = _to_uint8(tfp_at(c), vmax_gif)
         gif_frames.append(np.kron(g, np.ones((3, 3), np.uint8)))  # 3x upscaled for viewing
     gif = out / "preview.gif"
     with atomic_path(gif) as tmp:
@@ -106,7 +118,8 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     t1 = time.perf_counter()
     prof = sc.profile
     spikes, seq = simulate_frames(out / "frames", prof, model, seed, progress)
-    write_spikes(out / "spikes.npz", spikes, interval_s=prof.interval_s, model=model, profile_id=prof.name,
+    write_spikes(out / "spikes.npz", packed=spikes.packed, height=prof.height, width=prof.width,
+                 interval_s=prof.interval_s, model=model, profile_id=prof.name,
                  seed=seed, source=str(out / "frames"), extra={"scene": sc.name, "scene_hash": res.scene_hash,
                                                                "illuminance_lux": sc.illuminance_lux})
     t_sim = time.perf_counter() - t1
@@ -116,7 +129,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     t_prev = time.perf_counter() - t2
 
     T, H, W = spikes.shape
-    n_spk = int(spikes.sum())
+    n_spk = spikes.total()
     rate_per_interval = n_spk / max(T * H * W, 1)
     m = res.manifest
     phi_mean = float(np.mean([seq.read(i).phi.mean() for i in range(0, len(seq), max(1, len(seq) // 10))]))

@@ -268,3 +268,38 @@ class SpikeWriter:
         else:
             self.abort()
         return False
+
+
+class PackedSpikes:
+    """A spike stream held bit-packed in memory (1 bit per pixel-interval), unpacked window by window.
+
+    ``packed`` is uint8 (T, ceil(H*W/8)) in the :func:`pack_frames` layout; ``shape`` is (H, W).
+    """
+
+    def __init__(self, packed, shape):
+        self.packed = np.asarray(packed, np.uint8)
+        self.frame_shape = (int(shape[0]), int(shape[1]))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(T, H, W)."""
+        return (self.packed.shape[0],) + self.frame_shape
+
+    def __len__(self) -> int:
+        return self.packed.shape[0]
+
+    def window(self, start: int, stop: int) -> np.ndarray:
+        """bool (stop - start, H, W): intervals ``start .. stop-1``."""
+        return unpack_frames(self.packed[max(start, 0):stop], self.frame_shape)
+
+    def counts(self, start: int = 0, stop: int | None = None, chunk: int = 4096) -> np.ndarray:
+        """Spikes per pixel over intervals ``start .. stop-1``, int64 (H, W), in bounded memory."""
+        stop = len(self) if stop is None else stop
+        out = np.zeros(self.frame_shape, np.int64)
+        for a in range(start, stop, chunk):
+            out += self.window(a, min(a + chunk, stop)).sum(axis=0)
+        return out
+
+    def total(self) -> int:
+        """Total number of spikes."""
+        return int(np.unpackbits(self.packed).sum(dtype=np.int64)) if self.packed.size else 0
