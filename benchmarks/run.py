@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import os
 import platform
@@ -51,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
 from scene import KEYFRAME_HZ, MovingScene, lux_to_rate_e  # noqa: E402
+from sensor.fileio import write_text_atomic  # noqa: E402
 from sensor.units import intervals_to_seconds, seconds_to_intervals  # noqa: E402
 
 LUX = (0.1, 1.0, 5.0, 50.0, 500.0)
@@ -225,11 +227,12 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
     cols = ["model", "implementation", "lux", "rate_e_mean", "intervals", "wall_s", "pixel_steps_per_s",
             "realtime_factor", "speedup_vs_reference", "spikes_per_pixel_interval", "peak_traced_mib", "peak_rss_mib",
             "jit_s", "threads"]
-    with open(out_dir / "benchmark.csv", "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=cols + ["extrapolated"], extrasaction="ignore")
-        wr.writeheader()
-        for r in rows:
-            wr.writerow(r)
+    buf = io.StringIO()
+    wr = csv.DictWriter(buf, fieldnames=cols + ["extrapolated"], extrasaction="ignore")
+    wr.writeheader()
+    for r in rows:
+        wr.writerow(r)
+    write_text_atomic(out_dir / "benchmark.csv", buf.getvalue())
     lines = ["# render2spike sensor benchmark", "",
              f"Command: `{meta['command']}`  ", f"Date: {meta['date']}  ",
              f"Machine: {meta['machine']['cpu']}, {meta['machine']['cores']} cores; Python {meta['machine']['python']}, "
@@ -258,7 +261,7 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
             lines.append(f"| {r['camera_s']:.2f} | {r['intervals']} | {r['wall_s']:.2f} | {r['peak_traced_mib']:.1f} | "
                          f"{r['peak_rss_mib']:.0f} |")
     lines.append("")
-    (out_dir / "benchmark.md").write_text("\n".join(lines))
+    write_text_atomic(out_dir / "benchmark.md", "\n".join(lines))
     return out_dir / "benchmark.md"
 
 

@@ -61,7 +61,8 @@ def count_threshold(threshold_e, gain):
 
     Integer-valued float array. The exact and fast simulators both use this.
     """
-    k = np.ceil(np.float64(threshold_e) / np.asarray(gain, np.float64) - 1e-9)
+    q = np.float64(threshold_e) / np.asarray(gain, np.float64)
+    k = np.ceil(q * (1.0 - 1e-12))  # relative guard: theta / g that is an integer up to round-off stays that integer
     return np.maximum(k, 1.0)
 
 

@@ -88,7 +88,12 @@ def n_threads() -> int:
     """Worker threads for the tiles: ``RENDER2SPIKE_THREADS`` or the CPUs this process may use."""
     env = os.environ.get("RENDER2SPIKE_THREADS")
     if env:
-        return max(1, int(env))
+        try:
+            return max(1, int(env))
+        except ValueError:
+            from .errors import InputError
+            raise InputError(f"must be a positive integer (worker threads of the fast simulator), got '{env}'",
+                             field="RENDER2SPIKE_THREADS") from None
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover

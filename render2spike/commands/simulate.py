@@ -145,6 +145,10 @@ def run(args) -> int:
     say = (lambda m: None) if args.quiet else print
     src = RateSource(args.input)
     profile = fit_profile(SensorProfile.load(args.profile), src.shape, say)
+    rendered_for = (src.frames.manifest.get("profile") or {}).get("name") if src.kind == "frames" else None
+    if rendered_for and rendered_for != profile.name:
+        say(f"warning: the frames were rendered for profile '{rendered_for}' (its QE weights Phi); simulating "
+            f"with '{profile.name}' uses that QE but this profile's pixel area and noise maps")
     sim = SpikeSimulator(profile, args.model, args.seed, implementation="reference" if args.reference else "fast",
                          per_interval=src.per_interval)
     total = src.n_intervals(profile.interval_s)
