@@ -21,7 +21,7 @@ The sensor profile comes from the scene (camera.profile) unless --profile is giv
 """
 EXAMPLES = """\
 examples:
-  render2spike run scenes/rotating_disk.yaml --out out/demo          # the README demo, ~1-2 min on 2 cores
+  render2spike run scenes/rotating_disk.yaml --out out/demo          # the README demo, ~30-45 s on 2 cores
   render2spike run rotating_disk --out out/dim --lux 5 --model elssim --seed 1
   render2spike run translating_object --out out/ideal --model ideal --duration 0.05
 """
