@@ -596,6 +596,13 @@ class _FastModel(SpikeModel):
         raise NotImplementedError
 
 
+def _gamma_constants(profile: SensorProfile):
+    """Marsaglia-Tsang constants (d = k - 1/3, c = 1/sqrt(9 d)) of each pixel's Gamma(k, 1), k = ceil(theta/g)."""
+    k = count_threshold(profile.threshold_e, profile.prnu_gain).reshape(-1)
+    d = k - 1.0 / 3.0
+    return d, 1.0 / np.sqrt(9.0 * d)
+
+
 class ELSSimFast(_FastModel):
     """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see module doc)."""
 
@@ -604,9 +611,7 @@ class ELSSimFast(_FastModel):
     def __init__(self, profile: SensorProfile):
         super().__init__(profile)
         p = profile
-        k = count_threshold(p.threshold_e, p.prnu_gain).reshape(-1)
-        self.gb = k - 1.0 / 3.0
-        self.gc = 1.0 / np.sqrt(9.0 * self.gb)
+        self.gb, self.gc = _gamma_constants(p)
         self.omf = (1.0 - p.refractory_fraction.astype(np.float64)).reshape(-1)
         pd = dark_event_probability(p.dark_rate).reshape(-1)
         self.has_dark = (pd > 0).astype(np.uint8)
@@ -654,9 +659,7 @@ class ISIFast(_FastModel):
     def __init__(self, profile: SensorProfile):
         super().__init__(profile)
         p = profile
-        k = count_threshold(p.threshold_e, p.prnu_gain).reshape(-1)
-        self.gb = k - 1.0 / 3.0
-        self.gc = 1.0 / np.sqrt(9.0 * self.gb)
+        self.gb, self.gc = _gamma_constants(p)
         # counts throughout (see models.ISIModel): the gain enters once, through k
         self.dark_q = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain).reshape(-1)
 
