@@ -32,7 +32,7 @@ from sensor.frames import MANIFEST_NAME, frame_filename, read_frame, write_frame
 
 from . import backend
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
-from .sampling import TimeGrid, adaptive_ticks, change_metric
+from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
 from .scene import Scene
 
 STATE_NAME = "render_state.json"
@@ -179,8 +179,7 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
             bar.update(1)
         return f["phi"]
 
-    def metric(a, b):
-        return change_metric(a, b, var_floor, var_floor, z=4.0)
+    metric = interpolation_metric(var_floor, rate_scale, W, scene.profile.interval_s, z=4.0)
 
     def on_new(n):
         if bar:
