@@ -78,7 +78,10 @@ def _read_json(p: Path):
 
 def settings_of(scene: Scene, variant: str) -> dict:
     """Everything besides the scene data that changes the frames (part of the hash)."""
-    return {"variant": variant, "frames_format": 1}
+    # variant_family keeps GPU (cuda) and CPU (llvm/scalar) frames apart; procedure 2: exact spp in one
+    # launch per frame, fitted noise budget, curvature-based keyframes (frames of procedure 1 are not resumed)
+    return {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 1,
+            "procedure": 2}
 
 
 def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
