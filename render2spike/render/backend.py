@@ -66,14 +66,13 @@ def cuda_device_present() -> bool:
     """
     import ctypes.util
     import glob
-    lib = ctypes.util.find_library("cuda") or ctypes.util.find_library("nvcuda")
     if sys.platform.startswith("linux"):
-        if not glob.glob("/dev/nvidia[0-9]*"):
+        if not glob.glob("/dev/nvidia[0-9]*"):  # no device node: nothing more to look at
             return False
-        return bool(lib) or any(Path(d, "libcuda.so.1").exists() for d in
+        return bool(ctypes.util.find_library("cuda")) or any(Path(d, "libcuda.so.1").exists() for d in
                                 ("/usr/lib/x86_64-linux-gnu", "/usr/lib64", "/usr/lib/wsl/lib",
                                  "/usr/local/nvidia/lib64", "/usr/lib/aarch64-linux-gnu"))
-    return bool(lib)
+    return bool(ctypes.util.find_library("cuda") or ctypes.util.find_library("nvcuda"))
 
 
 def choose_variant(want: str | None, available, cuda_present: bool, probe) -> tuple[str, list[str]]:
