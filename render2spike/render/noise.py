@@ -17,20 +17,24 @@ Definitions (per pixel, rate in e-/interval)
 How the variance falls with spp is measured, not assumed
 --------------------------------------------------------
 The stratified (``multijitter``) sampler converges faster than 1/spp where the
-integrand is smooth in the pixel (texture edges, soft shadows: up to 1/spp^2)
-and like 1/spp where it is not (light sampling after a bounce). So the pilot
-(:func:`pilot_budget`) renders independent pairs at t = 0 at ``n1`` (the pilot
-spp), ``n2 = 4 n1`` and, when the answer lies beyond ``n2``, ``n3 = 16 n1``;
+integrand is smooth in the pixel (texture edges, soft shadows: 1/spp^2 and
+faster) and like 1/spp where it is not (light sampling after a bounce). So the
+pilot (:func:`pilot_budget`) renders independent pairs at t = 0 at ``n1`` (the
+pilot spp), ``n2 = 4 n1`` and, when the answer lies beyond ``n2``, ``n3 = 16 n1``;
 ``v(n)`` is the mean over pixels of ``(a - b)^2 / 2`` at each level, and
 
     V(n) = A / n + B / n^2,   A, B >= 0          (:func:`fit_convergence`)
 
 is fitted to them (least squares in relative error). The model is exact for
 pure 1/n and pure 1/n^2 convergence and over-estimates the variance of any
-power law ``n^-alpha`` in between when extrapolated beyond the pilots, so the
-chosen spp is conservative. Below ``n1`` the variance is taken to grow as
-``(n1/n)^2`` (the fastest plausible), again conservative. The spp is rounded up
-to a count the sampler takes exactly (:func:`exact_spp`).
+power law ``n^-alpha`` in between when extrapolated beyond the pilots, so its
+answer ``c`` is conservative. A last pair is then rendered *at* ``c`` (the
+variance is not smooth in n: ``multijitter`` strata change shape with the count)
+and the final spp is solved on the measured points alone
+(:class:`Measured`: power laws between neighbouring levels, ``(n1/n)^2`` below
+the first, ``1/n`` beyond the last; both conservative), so it is interpolated,
+never extrapolated, unless ``c`` itself missed. The spp is rounded up to a count
+the sampler takes exactly. Cost: pairs at 4, 16, 64 spp and at ``c``, once.
 
 The budget is then *verified*: some frames (the first, then every
 :data:`VERIFY_EVERY`-th rendered) get a second, independent render whose
@@ -96,6 +100,44 @@ class Convergence:
         n = self.n_min
         v = self.a / n + self.b / n ** 2
         return float((self.a / n + 2 * self.b / n ** 2) / v) if v > 0 else 1.0
+
+
+class Measured:
+    """``V(n)`` through measured (n, v) points: power laws between neighbours, ``(n0/n)^2`` below, ``1/n`` above."""
+
+    def __init__(self, ns, vs):
+        order = np.argsort(ns)
+        self.ns = np.asarray(ns, np.float64)[order]
+        v = np.asarray(vs, np.float64)[order]
+        self.vs = np.minimum.accumulate(np.maximum(v, 1e-300))  # non-increasing (pair noise can break it)
+        self.n_min = int(self.ns[0])
+        self.a, self.b = float(self.vs[-1] * self.ns[-1]), 0.0  # the 1/n tail, for the record
+
+    def __call__(self, n) -> float:
+        n = float(n)
+        ns, vs = self.ns, self.vs
+        if n <= ns[0]:
+            return float(vs[0] * (ns[0] / n) ** 2)
+        if n >= ns[-1]:
+            return float(vs[-1] * ns[-1] / n)
+        j = int(np.searchsorted(ns, n)) - 1
+        u = math.log(n / ns[j]) / math.log(ns[j + 1] / ns[j])
+        return float(math.exp((1 - u) * math.log(vs[j]) + u * math.log(vs[j + 1])))
+
+    def solve(self, allowed: float) -> float:
+        lo, hi = 1e-3, float(self.ns[-1])
+        if self(hi) > allowed:
+            return float(self.vs[-1] * self.ns[-1] / allowed)
+        for _ in range(100):  # bisection in log n (V is non-increasing)
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if self(mid) > allowed else (lo, mid)
+        return hi
+
+    @property
+    def alpha_local(self) -> float:
+        if self.ns.size < 2:
+            return 1.0
+        return float(math.log(self.vs[0] / self.vs[1]) / math.log(self.ns[1] / self.ns[0]))
 
 
 def fit_convergence(ns, vs) -> Convergence:
@@ -172,7 +214,7 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     ncfg = rcfg["noise"]
     exact = rnd.effective_spp
     n1 = exact(int(ncfg["pilot_spp"]))
-    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(6, dtype=np.uint32)
+    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(8, dtype=np.uint32)
     pil, levels, var_means = {}, [], []
 
     def level(j, n):
@@ -193,15 +235,24 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     if budget["spp_needed"] > levels[-1]:  # extrapolating: measure one level further out
         level(2, exact(16 * n1))
         budget = choose_spp_fit(rate(), fit_convergence(levels, var_means), *args)
+    fitted = budget
+    if budget["spp"] not in pil and not budget["at_min_spp"]:
+        # measure the candidate itself (the sampler's variance is not smooth in n: multijitter's
+        # strata change shape), then solve on measured points only
+        level(3, budget["spp"])
+    model = Measured(levels, var_means) if len(levels) > 1 else fit_convergence(levels, var_means)
+    budget = choose_spp_fit(rate(), model, *args)
+    budget["model"] = {"form": "power laws between the measured pilot levels", "fit_A_over_n_B_over_n2":
+                       fitted["model"], "alpha_at_pilot": model.alpha_local}
+    budget["fit_candidate_spp"] = fitted["spp"]
     budget["pilot"] = {"spp": [int(n) for n in levels], "mean_var_rate_e2": var_means}
-    top = levels[-1]
-    v_top = pair_variance(*pil[top])
-    model = fit_convergence(levels, var_means)
-    v_ref = model(top)
+    near = min(levels, key=lambda n: abs(math.log(n / max(budget["spp"], 1))))
+    v_near = pair_variance(*pil[near])
+    v_ref = model(near)
 
     def v_px(spp: int) -> np.ndarray:
-        """Per-pixel variance [Phi units^2] of one frame at ``spp``: the top pilot level scaled by the model."""
-        return v_top * (model(spp) / v_ref if v_ref > 0 else top / float(spp))
+        """Per-pixel variance [Phi units^2] of one frame at ``spp``: the nearest pilot level scaled by the model."""
+        return v_near * (model(spp) / v_ref if v_ref > 0 else near / float(spp))
     return budget, v_px
 
 

@@ -83,3 +83,19 @@ def test_frames_take_exactly_the_asked_samples_in_one_launch(write_scene, monkey
     assert calls == [64, 64] and f["phi_var"].shape == f["phi"].shape
     # the frame is the first render: the same as without variance
     np.testing.assert_array_equal(f["phi"], r.render_frame(0.0, 0, 64, variance=False)["phi"])
+
+
+def test_measured_model_interpolates_and_is_conservative_outside():
+    from render2spike.render.noise import Measured
+    ns = [4, 16, 64, 110]
+    vs = [n ** -1.7 for n in ns]
+    m = Measured(ns, vs)
+    for n in ns:
+        assert math.isclose(m(n), n ** -1.7, rel_tol=1e-12)
+    assert math.isclose(m(32), 32 ** -1.7, rel_tol=1e-9)  # a power law between levels is exact
+    assert m(2) >= 2 ** -1.7 and m(400) >= 400 ** -1.7  # outside: (n1/n)^2 below, 1/n above
+    allowed = 50 ** -1.7
+    assert abs(m.solve(allowed) - 50) < 1e-6
+    # pair noise that makes v rise with n is flattened: V never increases
+    m2 = Measured([4, 16, 64], [1.0, 0.1, 0.12])
+    assert m2(64) <= m2(16)
