@@ -30,7 +30,7 @@ Sections
    50 lux, budget spp): setup (load + light level + pilot) + keyframes per
    camera-second (section 2, same lux) x the measured seconds per frame
    (``--wait-frames`` frames rendered the way each version renders them:
-   one launch plus 1/16 of a verification launch now; two halves before).
+   one launch plus 1/32 of a verification launch now; two halves before).
    **Extrapolated** from those frames.
 """
 
@@ -100,11 +100,14 @@ def m_overhead(cfg):
         np.asarray(mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1000 + i, spp=spp))
     bare = time.perf_counter() - t
     pipe = t_end - seen["t_first"]
+    from render2spike.render.noise import VERIFY_EVERY
+    n_verified = len(range(0, res.n_frames, VERIFY_EVERY))
     H, W = rnd.height, rnd.width
     return {"scene": cfg["scene"], "resolution": f"{H}x{W}", "spp": spp, "frames": res.n_frames,
             "setup_s": seen["t_first"] - t_all, "pipeline_s_per_frame": pipe / res.n_frames,
             "bare_s_per_frame": bare / res.n_frames, "overhead_ratio": pipe / bare,
-            "samples_per_s": H * W * spp * res.n_frames / bare, "variant": rnd.variant}
+            "samples_per_s": H * W * spp * res.n_frames / bare, "variant": rnd.variant,
+            "verification_launches": n_verified}
 
 
 def m_keyframes(cfg):
@@ -180,7 +183,7 @@ def m_noise(cfg):
                     f = rnd.render_frame(ts, 5, spp)
                 write_frame(Path(d) / f"f{i}.exr", f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=ts)
             per_frame = (time.perf_counter() - t) / n
-        if version == "new":  # the first and every 16th frame also get a verification launch
+        if version == "new":  # the first and every VERIFY_EVERY-th frame get a verification launch
             from render2spike.render.noise import VERIFY_EVERY
             per_frame *= 1.0 + 1.0 / VERIFY_EVERY
     return {"scene": cfg["scene"], "lux": cfg["lux"], "resolution": f"{rnd.height}x{rnd.width}", "spp": int(spp),
@@ -228,6 +231,8 @@ def write_report(res, meta, out_dir: Path) -> Path:
          f"Old code: {meta['old'] or 'not measured'}", "", "No GPU was lent to this run: CPU (LLVM) figures only.", ""]
     if res.get("overhead"):
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", "",
+              "The pipeline includes the noise verification launches (the first and every 32nd frame: "
+              "2 extra launches in 33 frames).", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead |",
               "|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
@@ -274,8 +279,9 @@ def main(argv=None):
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--lux", type=float, nargs="+", default=list(LUX))
     ap.add_argument("--spp", type=int, default=16, help="fixed spp of sections 1-2 (default 16)")
-    ap.add_argument("--frames", type=int, default=24, help="frames per overhead run at the window (default 24)")
-    ap.add_argument("--full-frames", type=int, default=6, help="frames per overhead run at full res (default 6)")
+    ap.add_argument("--frames", type=int, default=33, help="frames per overhead run at the window (default 33)")
+    ap.add_argument("--full-frames", type=int, default=33, help="frames per overhead run at full res (default 33)")
+    ap.add_argument("--full-spp", type=int, default=4, help="spp of the full-resolution overhead runs (default 4)")
     ap.add_argument("--clip", type=float, default=0.04, help="camera seconds of the keyframe runs (default 0.04)")
     ap.add_argument("--wait-frames", type=int, default=2, help="frames timed per wait point (default 2)")
     ap.add_argument("--skip", nargs="*", default=[], choices=["overhead", "keyframes", "noise", "wait"])
@@ -298,8 +304,8 @@ def main(argv=None):
     if "overhead" not in a.skip:
         res["overhead"] = []
         for sc in a.scenes:
-            for sets, n in (([], a.frames), (full, a.full_frames)):
-                r = _run("overhead", {"scene": sc, "spp": a.spp, "frames": n, "sets": sets})
+            for sets, n, spp in (([], a.frames, a.spp), (full, a.full_frames, a.full_spp)):
+                r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets})
                 res["overhead"].append(r)
                 say(f"overhead {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
                     f"{r['overhead_ratio']:.3f}")
