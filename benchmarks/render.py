@@ -232,7 +232,7 @@ def write_report(res, meta, out_dir: Path) -> Path:
     if res.get("overhead"):
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", "",
               "The pipeline includes the noise verification launches (the first and every 32nd frame: "
-              "2 extra launches in 33 frames).", "",
+              "1 extra launch in 32 frames).", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead |",
               "|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
@@ -279,8 +279,8 @@ def main(argv=None):
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--lux", type=float, nargs="+", default=list(LUX))
     ap.add_argument("--spp", type=int, default=16, help="fixed spp of sections 1-2 (default 16)")
-    ap.add_argument("--frames", type=int, default=33, help="frames per overhead run at the window (default 33)")
-    ap.add_argument("--full-frames", type=int, default=33, help="frames per overhead run at full res (default 33)")
+    ap.add_argument("--frames", type=int, default=32, help="frames per overhead run at the window (default 32)")
+    ap.add_argument("--full-frames", type=int, default=32, help="frames per overhead run at full res (default 32)")
     ap.add_argument("--full-spp", type=int, default=4, help="spp of the full-resolution overhead runs (default 4)")
     ap.add_argument("--clip", type=float, default=0.04, help="camera seconds of the keyframe runs (default 0.04)")
     ap.add_argument("--wait-frames", type=int, default=2, help="frames timed per wait point (default 2)")
