@@ -464,13 +464,28 @@ def crossing_readout_isi_stats(lam: float, k: int):
     return float(m1), float(var), float((m12 - m1 * m1) / var)
 
 
-def crossing_readout_isi_pmf(n, lam: float, k: int) -> np.ndarray:
-    """P(read-out ISI = n), n >= 1 (stationary, f = 0, no dark): ``nu A0^(n-1) A1 1``."""
+def crossing_readout_isi_pmf(n, lam: float, k: int, after_spikes: int | None = None) -> np.ndarray:
+    """P(read-out ISI = n), n >= 1 (f = 0, no dark): ``nu A0^(n-1) A1 1``.
+
+    ``after_spikes=None``: the stationary ISI (``nu ∝ pi A1``). An integer j: the
+    ISI between read-out spikes j and j + 1 of a stream that starts reset
+    (phase 0); the phase after spike j has law ``delta_0 (M A1)^j``, with
+    ``M = (I - A0)^-1`` (the spike-embedded chain). One such ISI per pixel gives
+    independent samples of an exactly known law (consecutive ISIs are not
+    independent under the crossing reset).
+    """
     n = np.asarray(n, np.int64)
     A0, A1 = crossing_phase_chain(lam, k)
     kk = A0.shape[0]
-    nu = np.full(kk, 1.0 / kk) @ A1
-    nu /= nu.sum()
+    if after_spikes is None:
+        nu = np.full(kk, 1.0 / kk) @ A1
+    else:
+        P = np.linalg.solve(np.eye(kk) - A0, A1)
+        nu = np.zeros(kk)
+        nu[0] = 1.0
+        for _ in range(int(after_spikes)):
+            nu = nu @ P
+    nu = nu / nu.sum()
     out = np.zeros(int(n.max()) + 1)
     a1 = A1.sum(axis=1)
     v = nu.copy()
