@@ -12,22 +12,25 @@ simulated streams; ``docs/sensor.md`` explains each):
   spikes pass), so the selection acts alike on both.
 * **mean ISI** of a pixel: ``T / n_spikes`` [intervals] (its reciprocal rate);
   pixels are pooled in mean-ISI bins.
-* **ISI coefficient of variation** per bin: each ISI divided by its pixel's
-  mean ISI, pooled within-pixel variance ``sum (x - m)^2 / m^2 / sum (n - 1)``.
-* **lag-1 ISI serial correlation** per bin: ``sum d_j d_{j+1} / sum d_j^2``
-  with ``d`` the pixel's ISIs minus their mean, divided by the mean (pixels
-  with at least 3 ISIs).
-* **Fano factor** of spike counts in non-overlapping windows of ``w``
-  intervals, per bin: ``sum_i sum_k (c_ik - cbar_i)^2 / sum_i (K - 1) cbar_i``.
+* **ISI coefficient of variation** of each pixel (sample standard deviation of
+  its ISIs over their mean), averaged over the pixels of a bin.
+* **lag-1 ISI serial correlation** of each pixel, ``sum d_j d_{j+1} / sum
+  d_j^2`` with ``d`` its ISIs minus their mean (pixels with at least 3 ISIs,
+  not all equal), averaged over the pixels of a bin.
+* **Fano factor** of each pixel's spike counts in non-overlapping windows of
+  ``w`` intervals (variance over mean), averaged over the pixels of a bin
+  whose mean ISI is at most ``w`` (below one spike per window the value is
+  fixed by the spike count alone).
 * **spike-rate histogram** over all pixels (fraction of pixels per rate bin).
 * **dark and hot pixels**: pixels whose count is below / above the median of
   their 8 neighbours by more than ``z_outlier`` Poisson standard deviations
   (fractions), and the 0.1 % / 99.9 % quantiles of the per-pixel rate.
 
-Standard errors: each pooled statistic is a ratio of sums over pixels; its
-standard error is the delta-method (ratio-estimator) one over pixels, so it
-includes the pixel-to-pixel variation. Fractions use the binomial error and
-quantiles the order-statistic interval.
+Each pixel weighs the same in a bin's average, so a few pixels with residual
+motion (large, drifting ISIs) cannot dominate it. Standard errors: the standard
+deviation over the bin's pixels divided by sqrt(pixels), so they include the
+pixel-to-pixel variation; fractions use the binomial error (at least that of one
+pixel) and quantiles the order-statistic interval.
 
 Every estimate is biased on short recordings (e.g. the lag-1 correlation of
 independent ISIs is about ``-1/n`` with ``n`` ISIs per pixel). The simulation
@@ -151,16 +154,16 @@ def stationary_pixels(spikes, segments: int = 4, alpha: float = 0.01, dilate: bo
                   "stationary": int(keep.sum()), "dilated": bool(dilate)}
 
 
-def _ratio(A, B, groups, n_groups):
-    """Pooled ratio sum(A)/sum(B) per group and its delta-method SE over the units (pixels) of each group."""
-    sA = np.bincount(groups, A, n_groups)
-    sB = np.bincount(groups, B, n_groups)
+def _pixel_mean(values, groups, n_groups):
+    """Mean of a per-pixel value over the pixels of each group, its standard error (sd / sqrt(n)) and n."""
     n = np.bincount(groups, None, n_groups)
+    s1 = np.bincount(groups, values, n_groups)
+    s2 = np.bincount(groups, values * values, n_groups)
     with np.errstate(divide="ignore", invalid="ignore"):
-        R = sA / sB
-        resid = A - R[groups] * B
-        v = np.bincount(groups, resid * resid, n_groups) / (sB * sB) * n / np.maximum(n - 1, 1)
-    return R, np.sqrt(v), n
+        mean = s1 / n
+        var = np.maximum(s2 - n * mean * mean, 0.0) / (n - 1)
+        se = np.sqrt(var / n)
+    return mean, se, n
 
 
 def _rows(source, stat, lo, hi, labels, value, se, npix, nsamp):
@@ -210,22 +213,20 @@ def spike_statistics(spikes, keep=None, *, source: str = "real", isi_edges=ISI_E
         rows.extend(_rows(source, stat, lo[sel], hi[sel], [labels[i] for i in sel], R[sel], se[sel], npix[sel],
                           nsamp[sel]))
 
-    # ISI CV and lag-1 correlation: per-pixel sums, pooled per bin
+    # ISI CV and lag-1 correlation of each pixel, averaged over the pixels of a bin
     n_isi = np.bincount(tr.isi_pix, None, P)
     m = np.bincount(tr.isi_pix, tr.isi, P) / np.maximum(n_isi, 1)
     d = (tr.isi - m[tr.isi_pix]) / np.where(m[tr.isi_pix] > 0, m[tr.isi_pix], 1.0)
-    cvA = np.bincount(tr.isi_pix, d * d, P)
+    ss = np.bincount(tr.isi_pix, d * d, P)
     pix_cv = np.flatnonzero(use & (n_isi >= 2))
-    R, se, npix = _ratio(cvA[pix_cv], (n_isi - 1)[pix_cv].astype(np.float64), pbin[pix_cv], nb)
-    cv = np.sqrt(R)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        emit("isi_cv", cv, np.where(cv > 0, se / (2 * cv), np.sqrt(se)), npix, np.bincount(pbin[pix_cv], n_isi[pix_cv], nb))
-    lagA = np.bincount(tr.isi_pix[tr.pair], d[tr.pair] * d[tr.pair + 1], P)
-    pix_l = np.flatnonzero(use & (n_isi >= 3))
-    R, se, npix = _ratio(lagA[pix_l], cvA[pix_l], pbin[pix_l], nb)
-    emit("isi_lag1", R, se, npix, np.bincount(pbin[pix_l], n_isi[pix_l] - 1, nb))
+    cv_pix = np.sqrt(ss[pix_cv] / (n_isi[pix_cv] - 1))
+    emit("isi_cv", *_pixel_mean(cv_pix, pbin[pix_cv], nb), np.bincount(pbin[pix_cv], n_isi[pix_cv], nb))
+    lag = np.bincount(tr.isi_pix[tr.pair], d[tr.pair] * d[tr.pair + 1], P)
+    pix_l = np.flatnonzero(use & (n_isi >= 3) & (ss > 0))  # undefined when all of a pixel's ISIs are equal
+    emit("isi_lag1", *_pixel_mean(lag[pix_l] / ss[pix_l], pbin[pix_l], nb),
+         np.bincount(pbin[pix_l], n_isi[pix_l] - 1, nb))
 
-    # Fano factor of counts in windows of w intervals
+    # Fano factor of each pixel's counts in windows of w intervals, averaged over the pixels of a bin
     flat = s.reshape(T, P)
     for w in fano_windows:
         K = T // w
@@ -234,9 +235,9 @@ def spike_statistics(spikes, keep=None, *, source: str = "real", isi_edges=ISI_E
         pix_f = np.flatnonzero(use & (mean_isi <= w))  # >= 1 spike per window on average: else F is set by n alone
         c = flat[:K * w, pix_f].reshape(K, w, pix_f.size).sum(axis=1, dtype=np.int64).astype(np.float64)
         cbar = c.mean(axis=0)
-        A = ((c - cbar) ** 2).sum(axis=0)
-        R, se, npix = _ratio(A, (K - 1) * cbar, pbin[pix_f], nb)
-        emit(f"fano_w{w}", R, se, npix, npix * K)
+        fano = ((c - cbar) ** 2).sum(axis=0) / ((K - 1) * cbar)
+        mean, se, npix = _pixel_mean(fano, pbin[pix_f], nb)
+        emit(f"fano_w{w}", mean, se, npix, npix * K)
 
     # spike-rate histogram over all pixels
     rate = tr.counts / T
@@ -348,7 +349,15 @@ def rate_light_curve(profile: SensorProfile, model: str, *, seed: int = 0, n_lev
     rate_e = np.broadcast_to(np.repeat(lam[:, None], n_pixels, axis=1).astype(np.float32)[None],
                              (n_intervals, n_levels, n_pixels))
     s = simulate(rate_e, uni, model, seed=seed)
-    r = s.mean(axis=(0, 2), dtype=np.float64)
+    # stationary rate without the start-up transient (the stream starts with an empty integrator): per row,
+    # (spikes - 1) / (last - first spike time) pooled over its pixels; the plain fraction where that is undefined
+    T = s.shape[0]
+    any_ = s.any(axis=0)
+    first = np.where(any_, s.argmax(axis=0), 0)
+    last = np.where(any_, T - 1 - s[::-1].argmax(axis=0), 0)
+    n = s.sum(axis=0, dtype=np.int64)
+    span = np.where(n >= 2, last - first, 0).sum(axis=1)
+    r = np.where(span > 0, np.maximum(n - 1, 0).sum(axis=1) / np.maximum(span, 1), s.mean(axis=(0, 2)))
     return lam, np.maximum.accumulate(r)
 
 
@@ -422,7 +431,8 @@ def _distance(rows, real="real", model="model", min_groups: int = 1):
 
 
 def realism(spikes, profile: SensorProfile, models=DEFAULT_MODELS, *, seed: int = 0, segments: int = 4,
-            alpha: float = 0.01, curve_intervals: int = 8000, progress=None, **stat_kw) -> RealismResult:
+            alpha: float = 0.01, curve_intervals: int = 8000, max_warmup: int = 4000, progress=None,
+            **stat_kw) -> RealismResult:
     """Compare a real recording with each model: statistics rows, distances and notes on what was done.
 
     Parameters
@@ -437,6 +447,9 @@ def realism(spikes, profile: SensorProfile, models=DEFAULT_MODELS, *, seed: int 
     seed : int
         Seed of every simulation (child seeds per model and for the curves).
     segments, alpha : stationarity test (:func:`stationary_pixels`).
+    curve_intervals : intervals of the rate-light curve simulation (:func:`rate_light_curve`).
+    max_warmup : most intervals simulated and dropped before the compared stream (the recording starts with
+        every pixel at a random phase, a simulation with empty integrators).
     """
     from .simulate import simulate
     say = progress or (lambda msg: None)
@@ -467,6 +480,11 @@ def realism(spikes, profile: SensorProfile, models=DEFAULT_MODELS, *, seed: int 
                         "within a segment and have little power for pixels with 1-3 spikes."),
              "stationarity": st,
              "mean_isi": "T / n_spikes of the pixel [intervals]", "models": {}}
+    # the camera was running before the recording began, a simulation starts with empty integrators: simulate a
+    # warm-up of several ISIs of the slowest firing pixel (at least T, at most max_warmup) and drop it
+    n_min = int(rate[rate > 0].min() * T) if np.any(rate > 0) else 1
+    warmup = int(min(max_warmup, max(T, 4 * int(np.ceil(T / max(n_min, 1))))))
+    notes["warmup_intervals"] = warmup
     distances = {}
     for i, spec in enumerate(specs):
         prof = profile_for(profile, spec)
@@ -474,8 +492,8 @@ def realism(spikes, profile: SensorProfile, models=DEFAULT_MODELS, *, seed: int 
         sim_seed, curve_seed = (int(x) for x in child.generate_state(2))
         say(f"{spec.label}: estimating each pixel's light")
         lam, how = estimate_light(rate, prof, spec.name, seed=curve_seed, curve_intervals=curve_intervals)
-        say(f"{spec.label}: simulating {T} x {H} x {W}")
-        sim = simulate(np.broadcast_to(lam[None], (T, H, W)), prof, spec.name, seed=sim_seed)
+        say(f"{spec.label}: simulating {warmup} + {T} intervals of {H} x {W}")
+        sim = simulate(np.broadcast_to(lam[None], (warmup + T, H, W)), prof, spec.name, seed=sim_seed)[warmup:]
         keep_m = keep & stationary_pixels(sim, segments, alpha)[0]
         rows.extend(spike_statistics(sim, keep_m, source=spec.label, **stat_kw))
         distances[spec.label] = _distance(rows, model=spec.label)

@@ -74,19 +74,27 @@ def test_stationarity_tests_catch_a_rate_step_and_a_drift():
     assert keep_d[:, :7].all()
 
 
-def test_a_model_compared_with_its_own_recording_is_within_its_errors(z):
-    # "real" = elssim itself on a light ramp; elssim must come out at about the noise level, the ideal model far
+@pytest.mark.parametrize("reset", ["interval", "crossing"])
+def test_the_report_finds_the_model_and_reset_that_made_a_recording(z, reset):
+    # "real" = elssim with one reset on a light ramp. Each bin's |z| is |N(0,1)| (mean 0.80, sd 0.60) when the
+    # model is right, and D averages >= 1 bin per statistic, so a matched model stays below 0.8 + z * 0.6 (the
+    # single-bin bound, the loosest); the other reset must miss the lag-1 correlation by more than that
+    other = {"interval": "crossing", "crossing": "interval"}[reset]
     prof = sensor.SensorProfile.synthetic(24, 40, threshold_e=400.0, dark_rate=0.002, prnu_sigma=0.03, seed=1)
     lam = np.broadcast_to(np.linspace(8.0, 120.0, 40, dtype=np.float32)[None, None, :], (600, 24, 40))
-    rec = sensor.simulate(lam, prof, "elssim", seed=11)
-    res = realism(rec, prof, ["elssim:interval", "ideal"], seed=5, curve_intervals=4000)
-    d_self, d_ideal = res.distances["elssim:interval"], res.distances["ideal"]
-    # each bin's |z| is |N(0,1)| (mean 0.80, sd 0.60) when the model is right; D averages >= 1 bin per statistic,
-    # so a matched model stays below 0.8 + z * 0.6 (the single-bin bound, the loosest)
-    assert d_self["D"] < 0.8 + z * 0.6, d_self
-    assert d_ideal["D"] > 0.8 + z * 0.6, d_ideal
-    assert {"isi_cv", "isi_lag1", "fano", "rate_hist", "outliers"} <= set(d_self["per_statistic"])
-    assert res.notes["models"]["elssim:interval"]["light_estimate"].startswith("exact renewal")
+    rec = sensor.simulate(lam, prof.replace(reset=reset), "elssim", seed=11)
+    res = realism(rec, prof, [f"elssim:{reset}", f"elssim:{other}", "ideal"], seed=5, curve_intervals=4000)
+    bound = 0.8 + z * 0.6
+    matched = res.distances[f"elssim:{reset}"]
+    assert matched["D"] < bound, matched
+    assert {"isi_cv", "isi_lag1", "fano", "rate_hist", "outliers"} <= set(matched["per_statistic"])
+    assert res.distances[f"elssim:{other}"]["per_statistic"]["isi_lag1"] > bound, res.distances
+    assert res.distances["ideal"]["D"] > bound
+    assert res.distances["ideal"]["statistics_undefined"] == ["isi_lag1"]  # all ISIs of an ideal pixel are equal
+    how = res.notes["models"]
+    assert how["elssim:interval"]["light_estimate"].startswith("exact renewal")
+    assert how["elssim:crossing"]["light_estimate"].startswith("rate-light curve")
+    assert res.notes["models"][f"elssim:{reset}"]["reset"] == reset
 
 
 def test_parse_models_lists_valid_choices():
