@@ -233,3 +233,15 @@ def test_convert_cli_refuses_to_overwrite_and_reports_one_line(tmp_path, capsys)
     trunc.write_bytes(files["spikezoo"].read_bytes()[:100])
     assert main(["convert", str(trunc), str(tmp_path / "t.h5")]) == 2
     assert "t.npz" in capsys.readouterr().err and not (tmp_path / "t.h5").exists()
+
+
+def test_info_describes_third_party_layouts_and_h5(tmp_path):
+    from render2spike.commands.info import describe
+    s = _pattern()
+    files = _write_each_layout(tmp_path, s)
+    for layout in ("spikezoo", "rsir", "spikingsim"):
+        d = describe(files[layout])
+        assert d["kind"] == f"spike file, layout '{layout}'" and (d["intervals"], d["height"], d["width"]) == (T, H, W)
+        assert d["mean_spike_rate_per_interval"] == pytest.approx(s.mean())
+    d = describe(files["h5"])
+    assert d["kind"] == "HDF5 spike file" and d["n_intervals"] == T
