@@ -396,6 +396,37 @@ def estimate_light(rate, profile: SensorProfile, model: str, *, seed: int = 0, c
                                                                    if _uses_gain(model) else ""))
 
 
+def _simulate_after_warmup(lam, T: int, warmup: int, profile, model: str, seed: int, chunk: int = 1024):
+    """bool (T, H, W): ``model`` under constant light ``lam`` (H, W) after ``warmup`` discarded intervals.
+
+    Streamed, so memory holds the kept T intervals plus one chunk.
+    """
+    from .simulate import SpikeSimulator
+    sim = SpikeSimulator(profile, model, seed, per_interval=True)
+    lam = np.asarray(lam, np.float32)
+    total = warmup + T
+    kept: list[np.ndarray] = []
+    n_kept = produced = fed = 0
+
+    def take(block):
+        nonlocal n_kept, produced
+        kept.append(block)
+        n_kept += block.shape[0]
+        produced += block.shape[0]
+        # the first block is not needed when the rest plus what is still to come covers the last T intervals
+        while kept and n_kept - kept[0].shape[0] + (total - produced) >= T:
+            n_kept -= kept.pop(0).shape[0]
+
+    while fed < total:
+        n = min(chunk, total - fed)
+        for block in sim.iter_feed(np.broadcast_to(lam[None], (n,) + lam.shape)):
+            take(block)
+        fed += n
+    take(sim.finish())
+    s = np.concatenate(kept)
+    return np.ascontiguousarray(s[s.shape[0] - T:])
+
+
 # ------------------------------------------------------------------- the report
 @dataclass
 class RealismResult:
@@ -493,7 +524,7 @@ def realism(spikes, profile: SensorProfile, models=DEFAULT_MODELS, *, seed: int 
         say(f"{spec.label}: estimating each pixel's light")
         lam, how = estimate_light(rate, prof, spec.name, seed=curve_seed, curve_intervals=curve_intervals)
         say(f"{spec.label}: simulating {warmup} + {T} intervals of {H} x {W}")
-        sim = simulate(np.broadcast_to(lam[None], (warmup + T, H, W)), prof, spec.name, seed=sim_seed)[warmup:]
+        sim = _simulate_after_warmup(lam, T, warmup, prof, spec.name, sim_seed)
         keep_m = keep & stationary_pixels(sim, segments, alpha)[0]
         rows.extend(spike_statistics(sim, keep_m, source=spec.label, **stat_kw))
         distances[spec.label] = _distance(rows, model=spec.label)

@@ -155,3 +155,12 @@ def test_realism_cli_runs_on_the_real_recording(tmp_path, capsys):
     import json
     d = json.loads((out / "realism.json").read_text())["distances"]
     assert set(d) == {"elssim:interval", "isi"} and all(np.isfinite(v["D"]) for v in d.values())
+
+
+def test_streamed_warmup_equals_the_tail_of_one_long_simulation():
+    from sensor.realism import _simulate_after_warmup
+    p = sensor.SensorProfile.synthetic(8, 16, threshold_e=100.0, dark_rate=0.01, seed=0)
+    lam = np.linspace(1, 50, 128, dtype=np.float32).reshape(8, 16)
+    for T, warm, chunk in ((300, 1000, 97), (5, 3, 2)):
+        whole = sensor.simulate(np.broadcast_to(lam[None], (warm + T, 8, 16)), p, "elssim", seed=3)
+        np.testing.assert_array_equal(_simulate_after_warmup(lam, T, warm, p, "elssim", 3, chunk=chunk), whole[warm:])
