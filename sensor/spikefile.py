@@ -351,7 +351,7 @@ def _read_h5(path):
             raise SpikeFileError(f"packed 'spikes' has shape {data.shape} ({data.dtype}); expected uint8 "
                                  f"(T, {(H * W + 7) // 8}) for {H} x {W} frames", path=path, field="spikes")
         s = unpack_frames(data, (H, W))
-    elif enc == "uint8":
+    elif enc == "uint8" or (enc is None and data.ndim == 3):  # (another tool's file: 0/1 (T, H, W), no encoding)
         _three_d(data, path, "spikes", "(T, H, W)")
         s = _binary(data, path, "spikes")
     else:

@@ -61,8 +61,8 @@ def register(sub) -> None:
     p.add_argument("--width", type=int, help="frame width of a headerless .dat RECORDING")
     p.add_argument("--crop", metavar="H,W", help="use the centred H x W window of RECORDING (faster; default: all)")
     p.add_argument("--seed", type=int, default=0, help="seed of every simulation (default: 0)")
-    p.add_argument("--max-intervals", type=int, default=4000, metavar="N",
-                   help="use the first N intervals of RECORDING (memory and time bound; default 4000)")
+    p.add_argument("--max-intervals", type=int, default=2000, metavar="N",
+                   help="use the first N intervals of RECORDING (memory and time grow with N x H x W; default 2000)")
     p.add_argument("--segments", type=int, default=4, help="segments of the stationarity count test (default 4)")
     p.add_argument("--alpha", type=float, default=0.01, help="level of the stationarity tests (default 0.01)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing report in DIR")

@@ -209,6 +209,13 @@ def test_convert_round_trips_through_every_output(tmp_path):
         assert f["spikes"].dtype == np.uint8 and f["spikes"].shape == (T, H, W)
         assert f["spikes"].attrs["encoding"] == "uint8"
     np.testing.assert_array_equal(sensor.read_spikes(out), s)
+    with h5py.File(tmp_path / "other.h5", "w") as f:  # another tool's HDF5: 0/1 (T, H, W), no attributes
+        f["spikes"] = s.astype(np.uint8)
+    np.testing.assert_array_equal(sensor.read_spikes(tmp_path / "other.h5"), s)
+    with h5py.File(tmp_path / "nospikes.h5", "w") as f:
+        f["frames"] = s.astype(np.uint8)
+    with pytest.raises(sensor.SpikeFileError, match="no dataset 'spikes'"):
+        sensor.read_spikes(tmp_path / "nospikes.h5")
 
 
 def test_convert_cli_refuses_to_overwrite_and_reports_one_line(tmp_path, capsys):
