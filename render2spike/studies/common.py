@@ -135,6 +135,9 @@ def parse_study_methods(text_or_list, window: int):
     from recon.evaluate import parse_methods
     text = text_or_list if isinstance(text_or_list, str) else ",".join(text_or_list)
     methods = parse_methods(text)
+    for m in methods:
+        if m.kind == "tfp" and m.arg is None:
+            m.label = f"TFP (M={window})"
     if any(m.kind == "rsir" for m in methods) and window != 320:
         raise InputError("rsir networks take 10 windows of 32 intervals: use --window 320", field="--window")
     return methods
