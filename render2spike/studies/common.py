@@ -177,6 +177,13 @@ def reconstruct_all(methods, spikes, profile, center: int, window: int) -> dict:
 
 
 # ------------------------------------------------------------------ statistics
+def nanmean(values) -> float:
+    """Mean of the finite values; NaN (without a warning) when there are none."""
+    a = np.asarray(values, np.float64)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
 def sort_key(k: tuple) -> tuple:
     """Order tuples mixing numbers and strings: numbers numerically, strings alphabetically."""
     return tuple((0, float(x), "") if isinstance(x, (int, float)) else (1, 0.0, str(x)) for x in k)
@@ -190,9 +197,10 @@ def seed_spread(rows: list[dict], group: tuple, value: str, seed_key: str = "see
     for k in keys:
         sel = [r for r in rows if tuple(r[g] for g in group) == k]
         seeds = sorted({r[seed_key] for r in sel})
-        per_seed = [float(np.nanmean([r[value] for r in sel if r[seed_key] == s])) for s in seeds]
-        out.append({**dict(zip(group, k)), "mean": float(np.mean(per_seed)),
-                    "sd": float(np.std(per_seed, ddof=1)) if len(per_seed) > 1 else float("nan"),
+        per_seed = [nanmean([r[value] for r in sel if r[seed_key] == s]) for s in seeds]
+        fin = [v for v in per_seed if np.isfinite(v)]
+        out.append({**dict(zip(group, k)), "mean": nanmean(per_seed),
+                    "sd": float(np.std(fin, ddof=1)) if len(fin) > 1 else float("nan"),
                     "n_seeds": len(seeds), "n": len(sel)})
     return out
 

@@ -39,7 +39,7 @@ import numpy as np
 from sensor.errors import InputError
 from sensor.fileio import provenance, write_json_atomic, write_text_atomic
 
-from .common import (DEFAULT_PREROLL, NOISE_FREE_LABEL, clean_image, clean_window_average, load_study_models,
+from .common import (DEFAULT_PREROLL, NOISE_FREE_LABEL, nanmean, clean_image, clean_window_average, load_study_models,
                      parse_model_spec, parse_study_methods, profile_for, pyplot, reconstruct_all, save_figure,
                      seed_spread, simulate_clip, window_centers, write_csv)
 
@@ -336,7 +336,7 @@ def write_motion_study(out: Path, rows, strips, param, axis, info) -> dict:
              f"intervals; seeds {info['seeds']}. Scores against the clean image of the centre interval; ± is the sd "
              "of the per-seed means. Blur: 10-90 % edge spread along the motion "
              f"({axis}) [px], averaged over the moving edges; the clean image's own edge reads "
-             f"{np.nanmean([r['clean_blur_px'] for r in rows]):.2f} px.", "",
+             f"{nanmean([r['clean_blur_px'] for r in rows]):.2f} px.", "",
              f"| {short} | model | method | PSNR [dB] | SSIM | blur [px] |", "|---|---|---|---|---|---|"]
 
     def f(v, sd, d):
