@@ -426,7 +426,7 @@ class DatasetResult:
     seconds: float = 0.0
 
 
-def _client_for(scheduler: str | None, workers: int | None):
+def _client_for(scheduler: str | None, workers: int | None, resources: dict | None = None):
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError as exc:
@@ -434,15 +434,34 @@ def _client_for(scheduler: str | None, workers: int | None):
     if scheduler:
         return Client(scheduler)
     n = int(workers) if workers else max(1, (os.cpu_count() or 1))
-    return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None))
+    extra = {"resources": resources} if resources else {}
+    return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, **extra))
+
+
+def parse_resources(text) -> dict | None:
+    """``GPU=1,MEM=4e9`` -> {"GPU": 1.0, "MEM": 4e9} (Dask worker resources each task claims)."""
+    if not text:
+        return None
+    out = {}
+    for tok in str(text).split(","):
+        k, sep, v = tok.partition("=")
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            sep = ""
+        if not sep or not k.strip():
+            raise InputError(f"expected NAME=AMOUNT[,NAME=AMOUNT], got '{text}'", field="--resources")
+    return out
 
 
 def build_dataset(spec, out, *, client=None, scheduler: str | None = None, workers: int | None = None,
-                  retries: int = 2, progress: bool = True, log=print) -> DatasetResult:
+                  retries: int = 2, resources: dict | None = None, progress: bool = True,
+                  log=print) -> DatasetResult:
     """Make every sample of ``spec`` in ``out`` (see the module docstring); returns counts and failures.
 
     ``client``: a ``dask.distributed.Client`` to use; else ``scheduler`` (an address) or a LocalCluster of
-    ``workers`` processes; ``workers=0`` runs in this process without Dask.
+    ``workers`` processes; ``workers=0`` runs in this process without Dask. ``resources`` (e.g.
+    ``{"GPU": 1}``) is claimed by every task, so workers started with ``--resources GPU=1`` run one at a time.
     """
     from tqdm import tqdm
     t0 = time.perf_counter()
@@ -530,15 +549,15 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
         elif todo:
             from dask.distributed import as_completed
             if client is None:
-                client = own_client = _client_for(scheduler, workers)
+                client = own_client = _client_for(scheduler, workers, resources)
             rfut = {}
             futs, flist = {}, []
             for s, sid, rk in todo:
                 if rk not in rfut:
                     rfut[rk] = client.submit(render_task, s, rk, str(out), key=f"render-{rk}", retries=retries,
-                                             pure=False)
+                                             pure=False, resources=resources)
                 f = client.submit(sample_task, s, sid, rfut[rk], str(out), key=f"sample-{sid}", retries=retries,
-                                  pure=False)
+                                  pure=False, resources=resources)
                 futs[f.key] = sid
                 flist.append(f)
             for fut in as_completed(flist):

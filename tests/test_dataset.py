@@ -132,3 +132,14 @@ def test_one_render_serves_every_lux(tmp_path):
     a, b = sorted((tmp_path / "samples").iterdir(), key=lambda p: json.loads((p / "sample.json").read_text())["index"])
     pa, pb = sensor.read_frames(a).phi_stack(), sensor.read_frames(b).phi_stack()
     np.testing.assert_allclose(pb, 10 * pa, rtol=1e-6)
+
+
+def test_crossing_reset_is_a_model_axis(frames, tmp_path):
+    res = build_dataset(_spec(frames, lux=[50], models=["elssim", "elssim:crossing"], seeds=[0]), tmp_path,
+                        workers=0, progress=False, log=lambda *a: None)
+    assert res.n_done == 2
+    infos = [json.loads((p / "sample.json").read_text()) for p in (tmp_path / "samples").iterdir()]
+    assert sorted(str(i["reset"]) for i in infos) == ["None", "crossing"]
+    for p in (tmp_path / "samples").iterdir():
+        meta = sensor.read_spikes_meta(p / "spikes.npz")
+        assert meta["model"] == "elssim" and meta["reset"] == json.loads((p / "sample.json").read_text())["reset"]

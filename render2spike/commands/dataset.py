@@ -51,14 +51,17 @@ def register(sub) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler of an existing cluster (tcp://HOST:8786)")
     p.add_argument("--workers", type=int, default=None,
                    help="LocalCluster worker processes (default: one per CPU); 0: run here without Dask")
+    p.add_argument("--resources", metavar="NAME=N[,...]",
+                   help="Dask resources every task claims, e.g. GPU=1 with workers started with --resources GPU=1 "
+                        "(one task per GPU)")
     p.add_argument("--retries", type=int, default=2, help="retries of a failed sample before it is reported")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from render2spike.dataset import build_dataset
+    from render2spike.dataset import build_dataset, parse_resources
     res = build_dataset(args.spec, args.out, scheduler=args.scheduler, workers=args.workers, retries=args.retries,
-                        progress=not args.quiet)
+                        resources=parse_resources(args.resources), progress=not args.quiet)
     print((res.out / "summary.md").read_text())
     return 1 if res.failed else 0

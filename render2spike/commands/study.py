@@ -25,7 +25,7 @@ Run `render2spike study lux --help` (motion, generalisation) for each one's opti
 EXAMPLES = """\
 examples:
   render2spike render scenes/translating_object.yaml --out out/trans --duration 0.05
-  render2spike study lux out/trans/frames --out out/lux --lux 0.5,5,50,500 --models elssim,isi --seeds 0,1,2
+  render2spike study lux out/trans --out out/lux --lux 0.5,5,50,500 --models elssim,isi --seeds 0,1,2
   render2spike study motion translating_object --param speed_px_per_ms=0.1,0.3,1 --out out/motion \\
       --duration 0.03 --set render.spp=16
   render2spike study generalisation --data spec.yaml --train-models ideal,isi,elssim --out out/gen
@@ -81,8 +81,8 @@ method, ± the spread over seeds, a noise-free row, warnings for cells with too
 few light spikes), psnr_vs_lux.png, ssim_vs_lux.png (with a signal axis in e-
 per interval) and study.json.""", epilog="""\
 examples:
-  render2spike study lux out/trans/frames --out out/lux --lux 0.5,5,50,500 --models elssim,isi,ideal
-  render2spike study lux out/trans/frames --out out/lux --methods tfp,tfp-dt,rsir:runs/a/model.pt --dask local
+  render2spike study lux out/trans --out out/lux --lux 0.5,5,50,500 --models elssim,isi,ideal
+  render2spike study lux out/trans --out out/lux --methods tfp,tfp-dt,rsir:runs/a/model.pt --dask local
 """)
     p.add_argument("frames", metavar="FRAMES", help="frames folder (from render2spike render)")
     _common(p)
