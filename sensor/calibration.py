@@ -233,8 +233,9 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
                                                 f"({fit['threshold_e']:.0f} +- {fit['threshold_se']:.0f} e-)")
     if hasattr(base, "reset"):
         changes["reset"] = fit["reset"]
-        changes["provenance"]["reset"] = (f"calibrated: lag-1 ISI correlation test, decision {fit['reset']} "
-                                          f"(confidence {fit['reset_confidence']:.4f})")
+        changes["provenance"]["reset"] = (
+            f"calibrated: lag-1 ISI correlation test, decision {fit['reset']} (confidence "
+            f"{fit['reset_confidence']:.4f})" if reset is None else f"imposed by the user ({reset})")
     prof = base.replace(**changes)
     numbers = {
         "median_dark_fraction": median_p,
