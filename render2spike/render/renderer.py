@@ -25,7 +25,7 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, build_dict, to_transform
-from .photometry import cos4_map, direct_raw_e, emitter_scale, to_physical
+from .photometry import cos4_map, direct_raw_e, emitter_scale, to_physical, warn_if_reference_shadowed
 from .scene import Scene, spectrum_curve
 
 
@@ -84,6 +84,7 @@ class SceneRenderer:
         self.load_s = time.perf_counter() - t0
         self.reference = self._reference_point()
         self.calibration = self.measure_reference()
+        warn_if_reference_shadowed(self.calibration, scene.path)
         self.k = emitter_scale(scene.illuminance_lux, self.calibration["raw_e_total"])
 
     # --------------------------------------------------------------- motion
@@ -223,7 +224,8 @@ class SceneRenderer:
             e, to_light, dist = direct_raw_e(lt, spectrum_curve(lt.get("spectrum")), p, n)
             vis = e > 0 and self._visible(p, n, to_light, dist)
             direct += e if vis else 0.0
-            parts.append({"light": lt.get("name") or f"light{j}", "raw_e": e if vis else 0.0, "visible": bool(vis)})
+            parts.append({"light": lt.get("name") or f"light{j}", "raw_e": e if vis else 0.0, "visible": bool(vis),
+                          "raw_e_unshadowed": e})
         mi = self.mi
         spp = int(self.scene.render["meter_spp"])
         d, _ = build_dict(mi, self.scene, for_meter={"point": p, "normal": n, "spp": spp})
