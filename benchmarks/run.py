@@ -254,7 +254,8 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append("| " + " | ".join([
-            r["model"], r.get("reset", ""), r["implementation"] + (" (extrap.)" if r.get("extrapolated") else ""), _fmt(r["lux"], 1),
+            r["model"], r.get("reset", ""), r["implementation"] + (" (extrap.)" if r.get("extrapolated") else ""),
+            _fmt(r["lux"], 1),
             _fmt(r["rate_e_mean"]), str(r["intervals"]), _fmt(r["wall_s"]), _fmt(r["pixel_steps_per_s"]),
             _fmt(r["realtime_factor"], 3), _fmt(r.get("speedup_vs_reference", "")), _fmt(r["spikes_per_pixel_interval"], 4),
             _fmt(r["peak_traced_mib"], 1), _fmt(r["peak_rss_mib"], 0), _fmt(r["jit_s"])]) + " |")
@@ -294,22 +295,24 @@ def main(argv=None):
     load_before = tuple(round(x, 2) for x in os.getloadavg())
     common = {"profile": a.profile, "sink": a.sink, "threads": a.threads}
     rows = []
-    runs = [(m, r) for m in a.models for r in ((a.reset or [None]) if m == "elssim" else [None])]
-    for model, reset in runs:
-        for lux in a.lux:
-            ref = _subprocess(dict(common, model=model, reset=reset, implementation="reference", lux=lux,
-                                   duration_s=float(intervals_to_seconds(a.ref_intervals))))
-            ref["extrapolated"] = True
-            fast = _subprocess(dict(common, model=model, reset=reset, implementation="fast", lux=lux,
-                                    duration_s=a.duration))
-            fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]
-            ref["speedup_vs_reference"] = 1.0
-            for r in (fast, ref):
-                rows.append(r)
-                print(f"{r['model']:7s} {r['reset']:8s} {r['implementation']:9s} {lux:6g} lux: {r['pixel_steps_per_s']:.3e} "
-                      f"pixel-steps/s, x{r['realtime_factor']:.3f} real time, speed-up "
-                      f"{r['speedup_vs_reference']:.1f}, peak {r['peak_traced_mib']:.0f} MiB traced / "
-                      f"{r['peak_rss_mib']:.0f} MiB RSS, jit {r['jit_s']:.2f} s", flush=True)
+    # resets alternate at each lux, so that their rows are measured close together (ratios under a drifting load)
+    runs = [(m, lux, r) for m in a.models for lux in a.lux
+            for r in ((a.reset or [None]) if m == "elssim" else [None])]
+    for model, lux, reset in runs:
+        ref = _subprocess(dict(common, model=model, reset=reset, implementation="reference", lux=lux,
+                               duration_s=float(intervals_to_seconds(a.ref_intervals))))
+        ref["extrapolated"] = True
+        fast = _subprocess(dict(common, model=model, reset=reset, implementation="fast", lux=lux,
+                                duration_s=a.duration))
+        fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]
+        ref["speedup_vs_reference"] = 1.0
+        for r in (fast, ref):
+            rows.append(r)
+            print(f"{r['model']:7s} {r['reset']:8s} {r['implementation']:9s} {lux:6g} lux: "
+                  f"{r['pixel_steps_per_s']:.3e} "
+                  f"pixel-steps/s, x{r['realtime_factor']:.3f} real time, speed-up "
+                  f"{r['speedup_vs_reference']:.1f}, peak {r['peak_traced_mib']:.0f} MiB traced / "
+                  f"{r['peak_rss_mib']:.0f} MiB RSS, jit {r['jit_s']:.2f} s", flush=True)
     mem_rows = []
     if not a.no_memory_scan and "elssim" in a.models:
         for d in (a.duration / 2, a.duration, a.duration * 2):
