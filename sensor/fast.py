@@ -229,6 +229,28 @@ if HAVE_NUMBA:
         return xi
 
     @_jit_inline
+    def _subtract_and_flag(R, w, i, lo, nk, c0, nt, rm, gd, limit, flag):
+        """Pass 1 of the ELSSim kernels (vectorised): subtract piece i's light from the targets ``rm``; flag the
+        pixels whose target is reached or whose ``guard`` (an event time, or a "must look" sentinel) is < ``limit``."""
+        if nk == 2:
+            w00 = w[i, 0, 0]
+            w01 = w[i, 0, 1]
+            R0 = R[lo, c0:c0 + nt]
+            R1 = R[lo + 1, c0:c0 + nt]
+            for t in range(nt):
+                r_ = rm[t] - (w00 * np.float64(R0[t]) + w01 * np.float64(R1[t]))
+                rm[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < limit)
+        else:
+            for t in range(nt):
+                s = 0.0
+                for r in range(nk):
+                    s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
+                r_ = rm[t] - s
+                rm[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < limit)
+
+    @_jit_inline
     def _lockstep(rng, xs, R, w, i, lo, nk, a, n, m0, c0, nt, gb, gc, omf, dinv, rem, dark_next, refr, guard,
                   out, l0v, slv, rmv, jdv, flag, idx):
         """Piece ``i`` of sub-chunk ``c0`` for every pixel, one interval at a time (see _elssim_tile)."""
@@ -316,25 +338,7 @@ if HAVE_NUMBA:
                 nk = nk_[i]
                 # ---- pass 1 (vectorised): subtract the piece's expected count; flag pixels that may spike
                 # (guard = dark_next, or -1 while the next interval is a refractory one)
-                rm = rem[c0:c1]
-                gd = guard[c0:c1]
-                if nk == 2:
-                    w00 = w[i, 0, 0]
-                    w01 = w[i, 0, 1]
-                    R0 = R[lo, c0:c1]
-                    R1 = R[lo + 1, c0:c1]
-                    for t in range(nt):
-                        r_ = rm[t] - (w00 * np.float64(R0[t]) + w01 * np.float64(R1[t]))
-                        rm[t] = r_
-                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < end)
-                else:
-                    for t in range(nt):
-                        s = 0.0
-                        for r in range(nk):
-                            s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
-                        r_ = rm[t] - s
-                        rm[t] = r_
-                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < end)
+                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], end, flag)
                 # ---- pass 2: the flagged pixels, event by event (compacted first: no branch per pixel)
                 cnt = 0
                 for t in range(nt):
@@ -558,25 +562,7 @@ if HAVE_NUMBA:
                 lo = lo_[i]
                 nk = nk_[i]
                 # ---- pass 1 (vectorised): subtract the piece's light; flag pixels that may fire or start blind
-                rm = rem[c0:c1]
-                gd = guard[c0:c1]
-                if nk == 2:
-                    w00 = w[i, 0, 0]
-                    w01 = w[i, 0, 1]
-                    R0 = R[lo, c0:c1]
-                    R1 = R[lo + 1, c0:c1]
-                    for t in range(nt):
-                        r_ = rm[t] - (w00 * np.float64(R0[t]) + w01 * np.float64(R1[t]))
-                        rm[t] = r_
-                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < fend)
-                else:
-                    for t in range(nt):
-                        s = 0.0
-                        for r in range(nk):
-                            s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
-                        r_ = rm[t] - s
-                        rm[t] = r_
-                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < fend)
+                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], fend, flag)
                 cnt = 0
                 for t in range(nt):
                     idx[cnt] = t

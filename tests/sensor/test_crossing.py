@@ -106,7 +106,8 @@ def test_simulate_cli_reset_option_overrides_the_profile(tmp_path):
         out = tmp_path / f"{reset}.npz"
         assert main(["simulate", str(tmp_path / "rate.npy"), "--out", str(out), "--profile", str(prof_path),
                      "--reset", reset, "--quiet", "--seed", "2"]) == 0
-        spikes, meta = sensor.read_spikes(out)
+        from sensor.spikefile import read_spikes_with_meta
+        spikes, meta = read_spikes_with_meta(out)
         np.testing.assert_array_equal(spikes, sensor.simulate(rate, prof.replace(reset=reset), seed=2))
         assert meta["simulator"]["reset"] == reset
 
