@@ -53,6 +53,16 @@ def pack_frames(spikes) -> np.ndarray:
     return np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little")
 
 
+def count_bits(bits) -> int:
+    """Number of set bits in a uint8 array (spikes in packed frames); ``np.bitwise_count`` where numpy has it."""
+    bits = np.asarray(bits, np.uint8)
+    if not bits.size:
+        return 0
+    if hasattr(np, "bitwise_count"):  # numpy >= 2.0: ~10-20x faster than unpackbits
+        return int(np.bitwise_count(bits).sum(dtype=np.int64))
+    return int(np.unpackbits(bits).sum(dtype=np.int64))
+
+
 def unpack_frames(bits, shape) -> np.ndarray:
     """Inverse of :func:`pack_frames`: uint8 (n, ceil(H*W/8)) -> bool (n, H, W)."""
     h, w = shape
@@ -548,7 +558,7 @@ class SpikeWriter:
         elif shape != self.shape:
             raise SpikeFileError(f"frame shape changed from {self.shape} to {shape}", path=self.path)
         self.n_intervals += bits.shape[0]
-        self.n_spikes += int(np.unpackbits(bits).sum(dtype=np.int64)) if bits.size else 0
+        self.n_spikes += count_bits(bits)
         if self.kind == "dat":
             packed_to_dat(bits, *shape).tofile(self._fh)
         else:
