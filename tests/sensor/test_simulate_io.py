@@ -50,7 +50,7 @@ def test_per_interval_input_matches_python_api(tmp_path, prof, suffix):
     rc = main(["simulate", str(f), "--out", str(tmp_path / "s.npz"), "--profile", str(path), "--seed", "4",
                "--quiet", "--chunk", "5"])
     assert rc == 0
-    spikes, _ = sensor.read_spikes(tmp_path / "s.npz")
+    spikes = sensor.read_spikes(tmp_path / "s.npz")
     np.testing.assert_array_equal(spikes, sensor.simulate(rate, p, "elssim", seed=4))
 
 
