@@ -261,7 +261,15 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
 
 
 def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) -> list[Path]:
-    """Write ``<stem>.json`` (numbers) and ``<stem>.png`` (dark-rate histogram, hot-pixel map, PRNU map, PRNU spread)."""
+    """Write ``<stem>.json`` (numbers) and ``<stem>.png`` (maps, uncertainty maps and per-level diagnostics).
+
+    Panels: dark-rate histogram; hot-pixel map (mu/sigma of each hot pixel are in
+    the JSON, ``hot_mu_sigma``); PRNU map; its standard-error map; PRNU
+    histogram; per-level information share (which levels were used and why);
+    per-level threshold estimates with error bars and the combined fit; lag-1
+    ISI correlation per level against the two resets' predictions; sensitivity
+    map (with ``--flat-lux``) or its standard-error summary.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -270,7 +278,8 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     out_stem = Path(out_stem)
     jpath = out_stem.with_suffix(".json")
     write_json_atomic(jpath, {"profile": profile.name, **report.to_dict(), "provenance": provenance()})
-    fig, ax = plt.subplots(2, 2, figsize=(11, 8))
+    n = report.numbers
+    fig, ax = plt.subplots(3, 3, figsize=(15, 12))
     hz = per_interval_to_hz(profile.dark_rate, profile.interval_s)
     normal = ~profile.hot_mask
     vals = hz[normal]
@@ -281,18 +290,69 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     ax[0, 0].set_ylabel("pixels")
     ax[0, 0].set_title(f"dark current (mean {vals.mean():.1f} Hz)")
     ax[0, 1].imshow(profile.hot_mask, cmap="gray_r", interpolation="nearest")
-    ax[0, 1].set_title(f"hot pixels ({int(profile.hot_mask.sum())})")
-    im = ax[1, 0].imshow(profile.prnu_gain, cmap="coolwarm", vmin=0.8, vmax=1.2)
-    ax[1, 0].set_title("PRNU gain")
-    fig.colorbar(im, ax=ax[1, 0])
+    ax[0, 1].set_title(f"hot pixels ({int(profile.hot_mask.sum())}): median mu_HP {n.get('hot_mu_median', 0):.3f}, "
+                       f"sigma_HP {n.get('hot_sigma_median', 0):.3f}", fontsize=9)
+    im = ax[0, 2].imshow(profile.prnu_gain, cmap="coolwarm", vmin=0.8, vmax=1.2)
+    ax[0, 2].set_title("PRNU gain")
+    fig.colorbar(im, ax=ax[0, 2])
+    if report.prnu_se is not None:
+        se = np.where(np.isfinite(report.prnu_se), report.prnu_se, np.nan)
+        im = ax[1, 0].imshow(se, cmap="viridis")
+        fig.colorbar(im, ax=ax[1, 0])
+        ax[1, 0].set_title(f"PRNU standard error (median {np.nanmedian(se[normal]):.4f})")
     g = profile.prnu_gain[normal]
     ax[1, 1].hist(g, bins=60, color="0.3")
     ax[1, 1].set_xlabel("PRNU gain")
     ax[1, 1].set_title(f"PRNU spread: std {g.std():.4f}")
+    share = n.get("level_information_share")
+    if share is not None:
+        rates = n.get("flat_mean_spike_rate", [])
+        used = n.get("level_used", [])
+        ax[1, 2].bar(range(len(share)), share, color=["tab:green" if u else "tab:red" for u in used])
+        ax[1, 2].set_xticks(range(len(share)), [f"{r:.3f}" for r in rates], fontsize=8)
+        ax[1, 2].set_xlabel("flat level: mean spikes per interval (green: used)")
+        ax[1, 2].set_ylabel("share of PRNU information")
+        ax[1, 2].set_title("which levels inform the PRNU map" + ("" if n.get("prnu_enough", True)
+                                                                   else " (NOT ENOUGH)"), fontsize=10)
+    tl = n.get("threshold_levels") or []
+    if tl:
+        xs = [t["level"] for t in tl if t["theta_e"] is not None]
+        ys = [t["theta_e"] for t in tl if t["theta_e"] is not None]
+        es = [t["se_e"] for t in tl if t["theta_e"] is not None]
+        ax[2, 0].errorbar(xs, ys, yerr=es, fmt="o", color="k", capsize=3)
+        th, ths = n["threshold_e"], n["threshold_se"]
+        ax[2, 0].axhspan(th - ths, th + ths, color="tab:blue", alpha=0.3)
+        ax[2, 0].axhline(th, color="tab:blue")
+        ax[2, 0].set_xlabel("flat level index")
+        ax[2, 0].set_ylabel("threshold [e-]")
+        ax[2, 0].set_title(f"photon transfer: theta = {th:.0f} +- {ths:.0f} e-")
+    rl = n.get("reset_levels") or []
+    if rl:
+        idx = [i for i, r in enumerate(rl) if r.get("z") is not None]
+        rho = [rl[i]["rho"] for i in idx]
+        err = [1 / np.sqrt(max(rl[i]["n_pairs"], 1)) for i in idx]
+        ax[2, 1].errorbar(idx, rho, yerr=err, fmt="o", color="k", capsize=3, label="observed")
+        ax[2, 1].axhline(0.0, color="tab:orange", label="interval reset")
+        pc = [(i, r["rho_crossing"]) for i, r in enumerate(rl) if r.get("rho_crossing") is not None]
+        if pc:
+            ax[2, 1].plot(*zip(*pc), "s", color="tab:purple", label="crossing reset (predicted)")
+        ax[2, 1].legend(fontsize=8)
+        ax[2, 1].set_xlabel("flat level index")
+        ax[2, 1].set_ylabel("lag-1 ISI correlation")
+        conf = n.get("reset_confidence")
+        ax[2, 1].set_title(f"reset: {n.get('reset')}" + (f" (confidence {conf:.4f})" if conf is not None else ""))
+    if report.sensitivity is not None:
+        im = ax[2, 2].imshow(report.sensitivity, cmap="magma")
+        fig.colorbar(im, ax=ax[2, 2])
+        ax[2, 2].set_title(f"sensitivity {n['sensitivity_e_per_lux']:.2f} +- {n['sensitivity_se']:.2f} "
+                           "e-/(lux interval)", fontsize=10)
+    else:
+        ax[2, 2].axis("off")
+        ax[2, 2].text(0.05, 0.5, "sensitivity: give --flat-lux", fontsize=11)
     fig.suptitle(f"calibration of {profile.name}: {report.n_dark} dark, {report.n_flat} flat recordings")
     fig.tight_layout()
     ppath = out_stem.with_suffix(".png")
     with atomic_path(ppath) as tmp:
-        fig.savefig(tmp, dpi=90)
+        fig.savefig(tmp, dpi=80)
     plt.close(fig)
     return [jpath, ppath]

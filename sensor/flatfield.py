@@ -128,12 +128,14 @@ def readout_moments(reset, x, k, mu, f):
     return ct.interval_isi_moments(x * k, k, -np.expm1(-mu), f)
 
 
-def light_variance(reset, x, k, mu, f, T, rate=None, var_mu=None):
+def light_variance(reset, x, k, mu, f, T, rate=None):
     """Delta-method variance of the inverted light ``x`` from a ``T``-interval recording, and the count sd.
 
     The read-out count over ``T`` intervals has variance ``T Var(U) / E[U]^3``
     (renewal CLT) plus a bounded boundary term (1/6 spike^2, the phase of the
-    window ends); ``Var(x) = Var(rate) / (d rate / d x)^2``.
+    window ends); ``Var(x) = Var(rate) / (d rate / d x)^2``. Returns (variance,
+    count sd [spikes], d x / d mu_DC): the last propagates the dark-rate
+    estimate's error, which all levels of a pixel share.
     """
     m, v = readout_moments(reset, x, k, mu, f)
     var_n = T * v / m ** 3 + 1.0 / 6.0
@@ -142,16 +144,16 @@ def light_variance(reset, x, k, mu, f, T, rate=None, var_mu=None):
         x + h - np.maximum(x - h, 0))
     with np.errstate(divide="ignore", invalid="ignore"):
         var_x = var_n / T ** 2 / d ** 2
-    if rate is not None and var_mu is not None:
-        # the inversion uses the pixel's estimated dark rate: propagate its error (shared by all levels)
+    dx = np.zeros(np.shape(var_x))
+    if rate is not None:
+        # the inversion uses the pixel's estimated dark rate, whose error is shared by all levels: its derivative
         e = np.maximum(0.02 * mu, 1e-9)
         dx = (invert_rate(reset, rate, k, mu + e, f) - invert_rate(reset, rate, k, np.maximum(mu - e, 0), f)) / (
             mu + e - np.maximum(mu - e, 0))
-        var_x = var_x + dx ** 2 * var_mu
     sd_n = np.sqrt(T * v / m ** 3)
     if reset == "interval":
         sd_n = np.where(np.sqrt(k) / np.maximum(x * k, 1e-12) >= MIN_SPREAD_INTERVAL, sd_n, 0.0)
-    return np.where(d > 0, var_x, np.inf), sd_n
+    return np.where(d > 0, var_x, np.inf), sd_n, dx
 
 
 # ----------------------------------------------------------------------------------------------------- reset
@@ -208,12 +210,14 @@ def test_reset(levels, normal, x_levels, theta, gain, mu, f):
 
 
 # -------------------------------------------------------------------------------------------------- PRNU
-def fit_gain(x, var_x, normal, iterations: int = 20):
+def fit_gain(x, var_x, normal, dx_dmu=None, var_mu=None, iterations: int = 20):
     """Weighted rank-1 fit ``x[l, i] = X_l g_i`` (weights ``1 / var_x``), gains normalised to mean 1.
 
     The paper's regression of each pixel's rate on the level mean, with each
     (level, pixel) weighted by the information it carries and the level means
-    fitted from the informative pixels only. Returns (gain (P,), se (P,), X (K,)).
+    fitted from the informative pixels only. The standard error adds the error
+    of the pixel's dark rate (``var_mu``), shared by all its levels through
+    ``dx_dmu`` (K, P). Returns (gain (P,), se (P,), X (K,)).
     """
     w = np.where(np.isfinite(var_x) & (var_x > 0), 1.0 / np.where(var_x > 0, var_x, 1.0), 0.0)
     w[:, ~normal] = 0.0
@@ -228,7 +232,11 @@ def fit_gain(x, var_x, normal, iterations: int = 20):
         c = g[normal].mean()
         g, X = g / c, X * c
     info = (w * X[:, None] ** 2).sum(axis=0)
-    se = np.where(info > 0, 1.0 / np.sqrt(np.where(info > 0, info, 1)), np.inf)
+    safe = np.where(info > 0, info, 1)
+    var = 1.0 / safe
+    if dx_dmu is not None and var_mu is not None:
+        var = var + ((w * X[:, None] * np.nan_to_num(dx_dmu)).sum(axis=0) / safe) ** 2 * var_mu
+    se = np.where(info > 0, np.sqrt(var), np.inf)
     return g, se, X
 
 
@@ -243,16 +251,21 @@ def _threshold_terms(reset, lv, normal, x, gain, mu, f, theta_pilot):
     cancel, since they no longer depend on the block length once ``n Var(U) >=
     0.5``.
     """
-    P = normal.size
-    k = theta_pilot / gain
-    m, v = readout_moments(reset, x, k, mu, f)
     if reset == "interval":
         obs, nb = lv.block_variance(1)
         return obs, 1, nb
+    k = theta_pilot / gain
+    v = readout_moments(reset, x, k, mu, f)[1]
     n = max(1, int(np.ceil(0.5 / float(np.median(v[normal])))))
     v1, nb1 = lv.block_variance(n)
     v4, nb4 = lv.block_variance(4 * n)
-    obs = np.where(nb4 >= 4, (v4 - v1) / (3 * n), np.nan)
+    # E[V_n] = n Var(U) + c N_b / (N_b - 1) (ddof=1 with the telescoped total; c the bounded phase term): remove
+    # the small difference of the c terms with c estimated from the intercept (4 V_n - V_4n) / 3, pooled
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a1, a4 = nb1 / (nb1 - 1.0), nb4 / (nb4 - 1.0)
+        good = normal & (nb4 >= 4)
+        c = float(np.nanmean(((4 * v1 - v4) / 3)[good])) if good.any() else 1.0 / 6.0
+        obs = np.where(nb4 >= 4, (v4 - v1 - c * (a4 - a1)) / (3 * n), np.nan)
     return obs, n, nb4
 
 
@@ -377,7 +390,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         count_sd = np.zeros(x.shape)
         for l in range(K):
             if signal[l]:
-                var_x[l], count_sd[l] = light_variance(r_use, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T)
+                var_x[l], count_sd[l], _ = light_variance(r_use, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T)
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
         gain, gain_se, X = fit_gain(x, var_x, nf)
         if reset is None and it == 0:
@@ -397,13 +410,14 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     x = np.stack([invert_rate(decided, rates[l], k, mu, f) for l in range(K)])
     var_x = np.full(x.shape, np.inf)
     count_sd = np.zeros(x.shape)
+    dx_dmu = np.zeros(x.shape)
     for l in range(K):
         if signal[l]:
-            var_x[l], count_sd[l] = light_variance(decided, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T,
-                                                   rates[l], var_mu)
+            var_x[l], count_sd[l], dx_dmu[l] = light_variance(decided, np.maximum(x[l], 1e-9), k, mu, f,
+                                                              levels[l].T, rates[l])
     informative = count_sd >= MIN_COUNT_SD
     var_x = np.where(informative, var_x, np.inf)
-    gain, gain_se, X = fit_gain(x, var_x, nf)
+    gain, gain_se, X = fit_gain(x, var_x, nf, dx_dmu, var_mu)
     w = np.where(np.isfinite(var_x), 1.0 / np.where(np.isfinite(var_x), var_x, 1), 0.0)
     w[:, ~nf] = 0
     info = (w * X[:, None] ** 2)[:, nf].sum(axis=1)
