@@ -30,6 +30,7 @@ from a base profile.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,7 +41,8 @@ from .fileio import provenance, write_json_atomic
 from .profile import SensorProfile
 from .spikefile import read_spikes
 from .flatfield import fit_flats, flat_level_stats
-from .theory import fit_hot_pixel
+from .calib_theory import crossing_hot_pixel_isi_moments
+from .theory import fit_hot_pixel, hot_pixel_isi_moments
 from .units import per_interval_to_hz
 
 #: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
@@ -80,6 +82,40 @@ def _as_recording(x, height, width, drop_columns, what, i):
         raise CalibrationError(f"{what} recording {i} must be (T >= 2, H, W) spikes; got shape {s.shape}",
                                path=None if isinstance(x, np.ndarray) else x)
     return s.astype(bool, copy=False)
+
+
+def _f(x):
+    """A float for JSON (None for NaN)."""
+    return None if not np.isfinite(x) else float(x)
+
+
+def hot_pixel_se(isis, mu, sigma, p_dark, moments):
+    """Delta-method standard errors of (mu_HP, sigma_HP) fitted to a hot pixel's dark ISIs.
+
+    The sampling covariance of the ISIs' (mean, sd) (empirical second and
+    fourth moments) is mapped through the inverse Jacobian of the exact moment
+    model ``moments(mu, sigma, p_dark) -> (mean, var)`` (central differences).
+    ISIs are treated as independent (exact for the interval reset; the crossing
+    reset's carried-over charge correlates them weakly).
+    """
+    isis = np.asarray(isis, np.float64)
+    n = isis.size
+    m2 = isis.var()
+    m4 = np.mean((isis - isis.mean()) ** 4)
+    cov = np.diag([m2 / n, max(m4 - m2 ** 2, 1e-12) / (4 * m2 * n)])
+
+    def ms(a, b):
+        mm, vv = moments(a, b, p_dark)
+        return np.array([mm, np.sqrt(max(vv, 0.0))])
+    sg = max(sigma, 1e-3)
+    J = np.column_stack([(ms(mu * 1.02, sg) - ms(mu * 0.98, sg)) / (0.04 * mu),
+                         (ms(mu, sg * 1.05) - ms(mu, sg * 0.95)) / (0.10 * sg)])
+    try:
+        Ji = np.linalg.inv(J)
+    except np.linalg.LinAlgError:
+        return np.nan, np.nan
+    c = Ji @ cov @ Ji.T
+    return float(np.sqrt(c[0, 0])), float(np.sqrt(c[1, 1]))
 
 
 def _isi_stats(trains: list[np.ndarray]):
@@ -164,34 +200,6 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     p_normal = np.where(hot, median_p, p_dark)
     mu_dc = -np.log1p(-np.clip(p_normal, 0.0, 1.0 - 1e-12))
 
-    # ---- hot pixels: ISI moments from the dark recordings
-    hot_idx = np.flatnonzero(hot)
-    hot_mu = np.zeros(shape, np.float64)
-    hot_sigma = np.zeros(shape, np.float64)
-    hot_n_isi = np.zeros(shape, np.int64)
-    if hot_idx.size:
-        trains = {j: [] for j in hot_idx}
-        for i, x in enumerate(dark_recs):
-            s = x if isinstance(x, np.ndarray) else _as_recording(x, H, Wd, drop_columns, "dark", i)
-            flat_s = s.reshape(s.shape[0], -1)[:, hot_idx]
-            for c, j in enumerate(hot_idx):
-                trains[j].append(np.flatnonzero(flat_s[:, c]))
-        from tqdm import tqdm
-        for c, j in enumerate(tqdm(hot_idx, desc="hot-pixel fits", unit="pixel", disable=not progress_bar)):
-            isi = _isi_stats(trains[j])
-            r, cc = np.unravel_index(j, shape)
-            hot_n_isi[r, cc] = isi.size
-            if isi.size >= 2:
-                m, v = float(isi.mean()), float(isi.var(ddof=1))
-                if isi.size >= min_hot_isis:
-                    mu, sg = fit_hot_pixel(m, v, p_dark=median_p)
-                else:
-                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=median_p)[0], 0.0
-            else:  # too few spikes for an ISI: use the excess rate
-                mu, sg = float(p_dark.reshape(-1)[j] - median_p), 0.0
-            hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
-        say(f"hot pixels: {hot_idx.size}")
-
     # ---- flat fields: reset, effective light per pixel, PRNU, threshold, sensitivity
     normal = ~hot
     if flat_lux is not None and len(flat_lux) != len(flat):
@@ -209,6 +217,45 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     var_mu = np.clip(p_normal, 1e-12, None) / (n_int * np.clip(1 - p_normal, 1e-12, None))
     fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
                     median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    # ---- hot pixels: ISI moments from the dark recordings
+    hot_idx = np.flatnonzero(hot)
+    hot_mu = np.zeros(shape, np.float64)
+    hot_sigma = np.zeros(shape, np.float64)
+    hot_n_isi = np.zeros(shape, np.int64)
+    hot_mu_se = np.full(shape, np.nan)
+    hot_sigma_se = np.full(shape, np.nan)
+    f_map = base.refractory_fraction.astype(np.float64)
+    if fit["reset"] == "crossing":
+        def moments(m_, s_, p_, f_):
+            return crossing_hot_pixel_isi_moments(m_, s_, p_, f_, n_bins=120)
+    else:
+        def moments(m_, s_, p_, f_):
+            return hot_pixel_isi_moments(m_, s_, p_)
+    if hot_idx.size:
+        trains = {j: [] for j in hot_idx}
+        for i, x in enumerate(dark_recs):
+            s = x if isinstance(x, np.ndarray) else _as_recording(x, H, Wd, drop_columns, "dark", i)
+            flat_s = s.reshape(s.shape[0], -1)[:, hot_idx]
+            for c, j in enumerate(hot_idx):
+                trains[j].append(np.flatnonzero(flat_s[:, c]))
+        from tqdm import tqdm
+        for c, j in enumerate(tqdm(hot_idx, desc="hot-pixel fits", unit="pixel", disable=not progress_bar)):
+            isi = _isi_stats(trains[j])
+            r, cc = np.unravel_index(j, shape)
+            hot_n_isi[r, cc] = isi.size
+            mom = functools.partial(moments, f_=float(f_map[r, cc]))
+            if isi.size >= 2:
+                m, v = float(isi.mean()), float(isi.var(ddof=1))
+                if isi.size >= min_hot_isis:
+                    mu, sg = fit_hot_pixel(m, v, p_dark=median_p, moments=mom)
+                    hot_mu_se[r, cc], hot_sigma_se[r, cc] = hot_pixel_se(isi, mu, sg, median_p, mom)
+                else:
+                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=median_p, moments=mom)[0], 0.0
+            else:  # too few spikes for an ISI: use the excess rate
+                mu, sg = float(p_dark.reshape(-1)[j] - median_p), 0.0
+            hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
+        say(f"hot pixels: {hot_idx.size} ({fit['reset']} reset)")
+
     gain = np.where(hot, 1.0, fit["gain"])
     gain = np.clip(gain, 0.05, None)
     use = np.array(fit["level_used"])
@@ -243,8 +290,9 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         "hot_pixels": int(hot.sum()),
         "hot_mu_median": float(np.median(hot_mu[hot])) if hot.any() else 0.0,
         "hot_sigma_median": float(np.median(hot_sigma[hot])) if hot.any() else 0.0,
-        "hot_mu_sigma": [[int(r), int(c), float(hot_mu[r, c]), float(hot_sigma[r, c]), int(hot_n_isi[r, c])]
-                         for r, c in zip(*np.nonzero(hot))],
+        "hot_mu_sigma_columns": ["row", "col", "mu_HP", "mu_HP_se", "sigma_HP", "sigma_HP_se", "dark_isis"],
+        "hot_mu_sigma": [[int(r), int(c), float(hot_mu[r, c]), _f(hot_mu_se[r, c]), float(hot_sigma[r, c]),
+                          _f(hot_sigma_se[r, c]), int(hot_n_isi[r, c])] for r, c in zip(*np.nonzero(hot))],
         "hot_min_isis": int(hot_n_isi[hot].min()) if hot.any() else 0,
         "prnu_std": float(gain[normal].std()),
         "prnu_se_median": float(np.median(fit["gain_se"][normal])),

@@ -27,6 +27,10 @@ MIN_COUNT_SD = 1.0
 #: staircase in light (flat on the plateaus, a jump at the steps), so neither the inversion nor its delta-method
 #: variance can be trusted
 MIN_SPREAD_INTERVAL = 0.3
+#: the photon-transfer root is searched within this factor of the base threshold
+SEARCH_FACTOR = 10.0
+#: relative standard error above which the threshold is reported as weakly identified
+WEAK_THRESHOLD = 0.2
 #: |z| for the reset decision's test of the interval reset (one-sided)
 RESET_Z = 3.9
 
@@ -328,7 +332,7 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
 
     def solve(ts):
         # bracket on a coarse grid of log theta, then Brent on the bracketing cell
-        grid = lt0 + np.linspace(-np.log(4), np.log(4), 9)
+        grid = lt0 + np.linspace(-np.log(SEARCH_FACTOR), np.log(SEARCH_FACTOR), 11)
         vals = [total(g, ts) for g in grid]
         sgn = np.sign(vals)
         cells = np.flatnonzero(sgn[:-1] != sgn[1:])
@@ -344,16 +348,22 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
 
     theta, se = solve(terms)
     if theta is None:
-        raise CalibrationError("the photon-transfer estimating equation has no root for theta within a factor 4 "
-                               f"of {theta_pilot:.0f} e-: the flat ISIs do not follow the {reset} reset's "
-                               "shot-noise law", field="--flat")
+        say(f"warning: the threshold is not identifiable from these flats (no root of the photon-transfer equation "
+            f"within a factor {SEARCH_FACTOR:g} of {theta_pilot:.0f} e-, {reset} reset); keeping the base threshold")
+        return dict(threshold_e=None, threshold_se=None, threshold_levels=[],
+                    threshold_note="not identifiable from these flats")
     per_level = []
     for t in terms:
         th_l, se_l = solve([t])
         per_level.append(dict(level=t["level"], theta_e=th_l, se_e=se_l, block_isis=t["n"],
                               pixels=int(t["idx"].size)))
     say(f"threshold: {theta:.0f} +- {se:.0f} e- ({reset} reset, {len(terms)} levels)")
-    return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level)
+    note = "ok"
+    if se > WEAK_THRESHOLD * theta:
+        note = (f"weakly identified (standard error {100 * se / theta:.0f} %): the delta-method error is only a "
+                "guide; record longer or dimmer flats (interval reset) or brighter ones (crossing reset)")
+        say("warning: threshold " + note)
+    return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note)
 
 
 # -------------------------------------------------------------------------------------------------- driver
@@ -403,7 +413,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
             continue
         thr = fit_threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative=count_sd >= MIN_COUNT_SD,
                             say=say)
-        if thr is not None:
+        if thr is not None and thr["threshold_e"] is not None:
             theta = thr["threshold_e"]
     # final pass with the fitted theta
     k = theta / gain
@@ -450,8 +460,8 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         out.update(thr)
     if flat_lux is not None:
         lux = np.asarray(flat_lux, np.float64)
-        th = out.get("threshold_e", theta)
-        th_se = out.get("threshold_se", 0.0)
+        th = out.get("threshold_e") or theta
+        th_se = out.get("threshold_se") or 0.0
         wl = w * lux[:, None] ** 2
         den = wl.sum(axis=0)
         s_pix = np.where(den > 0, th * (w * lux[:, None] * np.nan_to_num(x)).sum(axis=0) / np.where(den > 0, den, 1),
@@ -460,6 +470,9 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         se_pix = np.sqrt(se_stat ** 2 + (s_pix * th_se / th) ** 2)
         s_mean = float(np.nanmean(s_pix[nf]))
         se_mean = float(np.sqrt((s_mean * th_se / th) ** 2 + np.mean(se_stat[nf] ** 2) / nf.sum()))
+        if out.get("threshold_e") is None:
+            out["sensitivity_note"] = ("scaled by the base threshold (the threshold was not identified): only "
+                                       "relative to it")
         out.update(sensitivity_e_per_lux=s_mean, sensitivity_se=se_mean,
                    sensitivity_map=s_pix.reshape(shape), sensitivity_se_map=se_pix.reshape(shape))
     return out
