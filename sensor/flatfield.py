@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special, stats
 
 from . import calib_theory as ct
 from .errors import CalibrationError
@@ -114,14 +114,20 @@ def invert_rate(reset, rate, k, mu, f):
     ok = (r > p) & (r < 1)
     target = 1.0 / np.where(ok, r, 0.5)
     # start: mean ISI ~ k / lam + 1/2 + f (the read-out rounds the crossing time up), then Newton on the exact mean
-    lam = np.where(ok, k / np.maximum(target - 0.5 - f, 0.25), 0.0)
-    for _ in range(10):
-        lo = np.where(ok, lam, 1.0)
-        m0 = ct.interval_isi_moments(lo, k, p, f)[0]
-        m1 = ct.interval_isi_moments(lo * 1.001, k, p, f)[0]
+    lam = np.where(ok, k / np.maximum(target - 0.5 - f, 0.25), 0.0).astype(np.float64)
+    act = np.flatnonzero(ok)
+    for _ in range(12):  # Newton on the pixels not yet converged (mean and its derivative in one call)
+        if not act.size:
+            break
+        lo = lam[act]
+        mm = ct.interval_isi_moments(np.concatenate([lo, lo * 1.001]), np.tile(k[act], 2), np.tile(p[act], 2),
+                                     np.tile(f[act], 2))[0]
+        m0, m1 = mm[:act.size], mm[act.size:]
         d = (m1 - m0) / (lo * 0.001)
-        step = np.where(d < 0, (target - m0) / np.where(d < 0, d, -1.0), 0.0)
-        lam = np.where(ok, np.clip(lo + step, lo * 0.7, lo * 1.3), 0.0)
+        step = np.where(d < 0, (target[act] - m0) / np.where(d < 0, d, -1.0), 0.0)
+        new = np.clip(lo + step, lo * 0.7, lo * 1.3)
+        lam[act] = new
+        act = act[np.abs(new - lo) > 1e-9 * lo]
     return lam / k
 
 
@@ -331,15 +337,21 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
         return float(sum(t["c"] * np.sum(ratio(t, lt)) for t in ts))
 
     def solve(ts):
-        # bracket on a coarse grid of log theta, then Brent on the bracketing cell
-        grid = lt0 + np.linspace(-np.log(SEARCH_FACTOR), np.log(SEARCH_FACTOR), 11)
-        vals = [total(g, ts) for g in grid]
-        sgn = np.sign(vals)
-        cells = np.flatnonzero(sgn[:-1] != sgn[1:])
-        if not cells.size:
-            return None, None
-        c = cells[0]
-        lt = optimize.brentq(lambda v: total(v, ts), grid[c], grid[c + 1], xtol=2e-4)
+        # the sum increases with theta (less shot variance predicted, c_l > 0): walk from the pilot in factors of
+        # 2 towards the sign change (at most SEARCH_FACTOR away), then Brent on the bracket
+        a = lt0
+        fa = total(a, ts)
+        step = np.log(2.0) * (1 if fa < 0 else -1)
+        b = a
+        while True:
+            b = a + step
+            if abs(b - lt0) > np.log(SEARCH_FACTOR) + 1e-9:
+                return None, None
+            fb = total(b, ts)
+            if np.sign(fb) != np.sign(fa):
+                break
+            a, fa = b, fb
+        lt = optimize.brentq(lambda v: total(v, ts), min(a, b), max(a, b), xtol=2e-4)
         acc = np.zeros(P)
         for t in ts:
             acc[t["idx"]] += t["c"] * ratio(t, lt)  # a pixel's terms over levels are summed: they share mu, g
@@ -364,6 +376,117 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
                 "guide; record longer or dimmer flats (interval reset) or brighter ones (crossing reset)")
         say("warning: threshold " + note)
     return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note)
+
+
+def interval_isi_logpmf(n_max, lam, k, p_dark, f):
+    """log P(ISI = n), n = 1..n_max, per pixel (P, n_max), interval reset: ``S(n - 1) - S(n)``."""
+    n = np.arange(0, n_max + 1, dtype=np.float64)[None, :]
+    S = special.gammaincc(k[:, None], np.clip(lam[:, None] * (n - f[:, None]), 0, None)) * \
+        np.exp(n * np.log1p(-np.clip(p_dark, 0, 1 - 1e-16))[:, None])
+    S[:, 0] = 1.0
+    pmf = S[:, :-1] - S[:, 1:]
+    with np.errstate(divide="ignore"):
+        return np.log(np.clip(pmf, 1e-300, None))
+
+
+def fit_threshold_interval_ml(levels, normal, x_levels, gain, mu, f, theta_pilot, informative=None,
+                              say=lambda m: None):
+    """Threshold theta [e-] under the interval reset by maximum likelihood on the whole ISI law.
+
+    Under the interval reset read-out ISIs are i.i.d. with the exact pmf
+    ``P(n) = S(n - 1) - S(n)``, ``S(n) = Q(k, lam (n - f)) (1 - p)^n``. For a
+    trial theta each pixel gets ``k_i = theta / g_i`` and the light that
+    reproduces its observed rate (so, as in photon transfer, only the *shape*
+    of the ISI law at the observed mean carries information on k: its shot-noise
+    width ``sqrt(k) / lam`` against the dark events' geometric tail, which the
+    variance alone cannot separate). The log-likelihood summed over pixels and
+    informative levels is maximised in log theta; standard error: the sandwich
+    ``sqrt(sum_i s_i^2) / |d^2 logL / d log theta^2|`` with per-pixel scores
+    ``s_i`` (pixels independent).
+    """
+    from scipy import optimize as opt
+    nf = normal.reshape(-1)
+    P = nf.size
+    terms = []
+    for l, (lv, x) in enumerate(zip(levels, x_levels)):
+        ok = nf & np.isfinite(x) & (x > 0) & (lv.counts >= 3)
+        if informative is not None:
+            ok &= informative[l]
+        if ok.sum() < 10:
+            continue
+        pid = np.repeat(np.arange(P), lv.counts)
+        d = np.diff(lv.times)
+        same = pid[1:] == pid[:-1]
+        d, dp = d[same], pid[1:][same]
+        sel = ok[dp]
+        d, dp = d[sel], dp[sel]
+        idx = np.flatnonzero(ok)
+        row = np.full(P, -1)
+        row[idx] = np.arange(idx.size)
+        n_max = int(d.max())
+        H = np.bincount(row[dp] * n_max + (d - 1), minlength=idx.size * n_max).reshape(idx.size, n_max)
+        terms.append(dict(level=l, idx=idx, H=H, n_max=n_max, rate=lv.rate.reshape(-1)[idx], g=gain[idx],
+                          mu=mu[idx], f=f[idx]))
+    if not terms:
+        return None
+    cache = {}
+
+    def pix_ll(t, lam, k):
+        lp = interval_isi_logpmf(t["n_max"], lam, k, -np.expm1(-t["mu"]), t["f"])
+        return (t["H"] * lp).sum(axis=1)
+
+    def loglik_pix(lt):
+        # profile likelihood: each pixel's light maximises its own likelihood (Newton in log lam from the
+        # rate-inverted start); pinning the light to the noisy observed rate would bias theta low, since a
+        # misplaced ISI peak is best explained by a wider (lower-k) law
+        key = round(float(lt), 12)
+        if key not in cache:
+            acc = np.zeros(P)
+            for t in terms:
+                k = np.exp(lt) / t["g"]
+                lam = np.maximum(invert_rate("interval", t["rate"], k, t["mu"], t["f"]) * k, 1e-9)
+                e = 1e-3
+                for _ in range(5):
+                    a, b, c = pix_ll(t, lam * np.exp(-e), k), pix_ll(t, lam, k), pix_ll(t, lam * np.exp(e), k)
+                    d1, d2 = (c - a) / (2 * e), (c - 2 * b + a) / e ** 2
+                    step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
+                    lam = lam * np.exp(np.clip(step, -0.1, 0.1))
+                acc[t["idx"]] += pix_ll(t, lam, k)
+            cache[key] = acc
+        return cache[key]
+
+    lt0 = np.log(theta_pilot)
+    span = np.log(SEARCH_FACTOR)
+    res = opt.minimize_scalar(lambda v: -loglik_pix(v).sum(), bounds=(lt0 - span, lt0 + span), method="bounded",
+                              options=dict(xatol=1e-4))
+    lt = float(res.x)
+    if abs(lt - lt0) > span - 1e-3:
+        say(f"warning: the threshold is not identifiable from these flats (the likelihood peaks at the edge of "
+            f"the search, a factor {SEARCH_FACTOR:g} from {theta_pilot:.0f} e-); keeping the base threshold")
+        return dict(threshold_e=None, threshold_se=None, threshold_levels=[],
+                    threshold_note="not identifiable from these flats")
+    h = 0.01
+    lp, l0, lm = loglik_pix(lt + h), loglik_pix(lt), loglik_pix(lt - h)
+    score = (lp - lm) / (2 * h)
+    curv = (lp.sum() - 2 * l0.sum() + lm.sum()) / h ** 2
+    theta = float(np.exp(lt))
+    se = float(theta * np.sqrt(np.sum(score ** 2)) / abs(curv)) if curv < 0 else float("inf")
+    say(f"threshold: {theta:.0f} +- {se:.0f} e- (interval reset, maximum likelihood, {len(terms)} levels)")
+    note = "ok"
+    if se > WEAK_THRESHOLD * theta:
+        note = (f"weakly identified (standard error {100 * se / theta:.0f} %): record longer flats at levels "
+                "where the ISI spreads over several intervals")
+        say("warning: threshold " + note)
+    per_level = [dict(level=t["level"], theta_e=None, se_e=None, block_isis=1, pixels=int(t["idx"].size))
+                 for t in terms]
+    return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note,
+                threshold_method="maximum likelihood (interval reset)")
+
+
+def _threshold(reset, levels, normal, x, gain, mu, f, theta, informative, say):
+    if reset == "interval":
+        return fit_threshold_interval_ml(levels, normal, x, gain, mu, f, theta, informative=informative, say=say)
+    return fit_threshold(reset, levels, normal, x, gain, mu, f, theta, informative=informative, say=say)
 
 
 # -------------------------------------------------------------------------------------------------- driver
@@ -411,8 +534,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
                 say("warning: too few ISIs to test the reset; assuming the interval reset")
             say(f"reset: {decided} (combined z {rt['reset_z']}, confidence {rt['reset_confidence']:.4f})")
             continue
-        thr = fit_threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative=count_sd >= MIN_COUNT_SD,
-                            say=say)
+        thr = _threshold(decided, levels, normal, list(x), gain, mu, f, theta, count_sd >= MIN_COUNT_SD, say)
         if thr is not None and thr["threshold_e"] is not None:
             theta = thr["threshold_e"]
     # final pass with the fitted theta
@@ -455,7 +577,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         say(f"warning: the flats are not enough for the PRNU map: median standard error {med_se:.4f} against a "
             f"spread of {g_spread:.4f}; record longer flats at levels where the read-out is not deterministic")
     if thr is None and reset is not None:
-        thr = fit_threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative=informative, say=say)
+        thr = _threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative, say)
     if thr is not None:
         out.update(thr)
     if flat_lux is not None:
