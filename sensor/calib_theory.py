@@ -25,15 +25,18 @@ Crossing reset (continuous time)
     the mean and variance of the time from one read-out spike to the next
     (``U``, the merged ISIs plus the next unmerged one, a geometric compound);
     the read-out spike rate is ``1 / E[U]``. For ``n`` consecutive read-out ISIs
-    the telescoping sum of read-out indices obeys, exactly in the phase,
+    the telescoping sum of read-out indices obeys (exactly when nothing merges)
 
         Var(sum of n read-out ISIs) = n Var(U) + E[q(Y_n)],
         q(y) = frac(y) (1 - frac(y)),  E[q(Y_n)] -> 1/6,
 
-    so the readout quantisation adds a bounded 1/6 interval^2 whatever ``n``
-    (it is 1/6 to within 1e-3 relative once ``n Var(U) >= 0.3``), while shot
-    noise grows with ``n``. The merge treatment (phase independent of the
-    merged ISI) is exact to first order in ``mu``.
+    so the readout quantisation adds a bounded term whatever ``n`` (1/6 to
+    within 1e-3 relative once ``n Var(U) >= 0.3`` when nothing merges; merges
+    add a small bounded phase-span covariance), while shot noise grows with
+    ``n``: the variance-time slope between two block lengths is ``Var(U)``.
+    The merge treatment (phase independent of the merged ISI) is exact to first
+    order in ``mu``; ``Var(U)`` and ``E[U]`` agree with a direct Monte Carlo of
+    the continuous process to 0.1 %.
 """
 
 from __future__ import annotations
@@ -177,19 +180,6 @@ def invert_crossing_rate(rate, k, mu, f, iterations: int = 8):
             lam = np.where(good, np.where(mu > 0, lam_d, k / np.where(y > 0, y, 1.0)), 0.0)
         pi = np.clip(_crossing_merge_integrals(np.maximum(lam, 1e-12), k, mu, f)[0], 0, 0.999)
     return lam
-
-
-def quantisation_term(var_sum):
-    """E[q(Y)] for a read-out block whose continuous span has variance ``var_sum`` (Gaussian phase argument).
-
-    ``q(y) = frac(y)(1 - frac(y)) = 1/6 - sum_j cos(2 pi j y) / (pi j)^2`` and a
-    uniform starting phase give ``E[q] = 1/6 - sum_j cos(.) |phi(2 pi j)| / (pi j)^2``;
-    with the span's spread ``s`` the oscillating part is at most
-    ``exp(-2 pi^2 s^2) / 6``: this returns 1/6 and the bound, so callers can
-    require ``bound < 1e-3 / 6``.
-    """
-    v = np.asarray(var_sum, np.float64)
-    return 1.0 / 6.0, np.exp(-2 * np.pi ** 2 * v) / 6.0
 
 
 def crossing_lag1_correlation(var_unit):

@@ -371,6 +371,8 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
         th, ths = n["threshold_e"], n["threshold_se"]
         ax[2, 0].axhspan(th - ths, th + ths, color="tab:blue", alpha=0.3)
         ax[2, 0].axhline(th, color="tab:blue")
+        half = 4 * max(ths, 0.1 * th)
+        ax[2, 0].set_ylim(max(0.0, th - half), th + half)
         ax[2, 0].set_xlabel("flat level index")
         ax[2, 0].set_ylabel("threshold [e-]")
         ax[2, 0].set_title(f"photon transfer: theta = {th:.0f} +- {ths:.0f} e-")

@@ -17,7 +17,6 @@ from . import calib_theory as ct
 from .errors import CalibrationError
 from .theory import renewal_spike_rate
 
-RESETS = ("interval", "crossing")
 #: a level informs the PRNU map only where its expected spike count error is at least this many spikes
 #: (below it the read-out is deterministic, e.g. on a plateau of the interval reset's staircase, and the
 #: delta-method variance of the inverted rate is not valid)
@@ -45,6 +44,23 @@ class FlatLevel:
     times: np.ndarray  # spike interval indices, sorted by pixel then time
     starts: np.ndarray  # (P,) index of each pixel's first spike in ``times``
     counts: np.ndarray  # (P,) spikes per pixel
+
+    @property
+    def isi_rate(self) -> np.ndarray:
+        """(P,) spikes per interval as 1 / mean ISI: ``(N - 1) / (t_last - t_first)``.
+
+        Unbiased for the stationary rate of a renewal process started at a spike
+        (``N / T`` is low by about half a spike: the recording starts with the
+        pixel reset); ``N / T`` where a pixel has fewer than two spikes.
+        """
+        c = self.counts
+        has = c >= 2
+        if not has.any():
+            return c / self.T
+        first = self.times[np.where(has, self.starts, 0)]
+        last = self.times[np.where(has, self.starts + c - 1, 0)]
+        span = np.where(has, last - first, 1)
+        return np.where(has & (span > 0), (c - 1) / np.maximum(span, 1), c / self.T)
 
     def block_variance(self, n: int):
         """Per pixel (variance ddof=1, number of blocks) of sums of ``n`` consecutive read-out ISIs."""
@@ -184,7 +200,7 @@ def test_reset(levels, normal, x_levels, theta, gain, mu, f):
     """
     mflat = normal.reshape(-1)
     per_level = []
-    zs, ws = [], []
+    zs = []
     ll_i = ll_c = 0.0
     for lv, x in zip(levels, x_levels):
         rho, npairs, npix = lv.lag1(mflat)
@@ -203,7 +219,6 @@ def test_reset(levels, normal, x_levels, theta, gain, mu, f):
             ll_c += -0.5 * ((rho - rc) / se) ** 2
         per_level.append(dict(rho=rho, n_pairs=npairs, z=float(z), rho_crossing=rc))
         zs.append(z)
-        ws.append(1.0)
     if not zs:
         return dict(reset=None, reset_z=None, reset_p_interval=None, reset_confidence=0.0, reset_levels=per_level)
     zc = float(np.sum(zs) / np.sqrt(len(zs)))
@@ -305,7 +320,7 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
         if ok.sum() < 10:
             continue
         idx = np.flatnonzero(ok)
-        terms.append(dict(level=l, idx=idx, obs=obs[idx], rate=lv.rate.reshape(-1)[idx], g=gain[idx], mu=mu[idx],
+        terms.append(dict(level=l, idx=idx, obs=obs[idx], rate=lv.isi_rate[idx], g=gain[idx], mu=mu[idx],
                           f=f[idx], n=n))
     if not terms:
         return None
@@ -425,7 +440,7 @@ def fit_threshold_interval_ml(levels, normal, x_levels, gain, mu, f, theta_pilot
         row[idx] = np.arange(idx.size)
         n_max = int(d.max())
         H = np.bincount(row[dp] * n_max + (d - 1), minlength=idx.size * n_max).reshape(idx.size, n_max)
-        terms.append(dict(level=l, idx=idx, H=H, n_max=n_max, rate=lv.rate.reshape(-1)[idx], g=gain[idx],
+        terms.append(dict(level=l, idx=idx, H=H, n_max=n_max, rate=lv.isi_rate[idx], g=gain[idx],
                           mu=mu[idx], f=f[idx]))
     if not terms:
         return None
@@ -503,7 +518,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     var_mu = None if var_mu is None else np.broadcast_to(var_mu, shape).reshape(-1)
     f = np.broadcast_to(f_ref, shape).reshape(-1).astype(np.float64)
     K = len(levels)
-    rates = np.stack([lv.rate.reshape(-1) for lv in levels])
+    rates = np.stack([lv.isi_rate for lv in levels])
     mean_rate = rates[:, nf].mean(axis=1)
     signal = (mean_rate > 2 * max(median_p, 1e-6)) & (mean_rate < 0.9)
     if not signal.any():
