@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
-
 HELP = "render a scene file to irradiance frames (OpenEXR, physical units)"
 DESCRIPTION = """\
 Render a moving 3-D scene with Mitsuba 3 (spectral) into a frames folder:
@@ -32,12 +30,12 @@ examples:
   render2spike render rotating_disk --out out/dim --lux 2 --duration 0.05
   render2spike render scenes/translating_object.yaml --out out/fast \\
       --set objects.cube.motion.parametric.0.translate.velocity_m_s=[1,0,0] --spp 64
-  render2spike render room_pan --out out/room --keyframe-rate 2000 --seed 3 --overwrite
+  render2spike render room_pan --out out/room --keyframe-rate 2000 --render-seed 3 --overwrite
 """
 
 
-def add_scene_options(p, seed_help: str = "render base seed (per-frame seeds derive from it; default: the scene's)") -> None:
-    """Options shared by `render` and `run` (``seed_help`` says what --seed seeds in each)."""
+def add_scene_options(p) -> None:
+    """Options shared by `render` and `run`. ``--render-seed`` seeds the render; ``--seed`` (run only) the spikes."""
     p.add_argument("scene", metavar="SCENE", help="scene YAML file or bundled scene name")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--lux", type=float, metavar="X", help="illuminance at the scene's reference [lux] (overrides the scene)")
@@ -49,7 +47,9 @@ def add_scene_options(p, seed_help: str = "render base seed (per-frame seeds der
     p.add_argument("--profile", metavar="NAME|PATH", help="sensor profile (sets resolution and pixel pitch)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any scene key, dotted path; list items by index or name (repeatable)")
-    p.add_argument("--seed", type=int, default=None, metavar="N", help=seed_help)
+    p.add_argument("--render-seed", type=int, default=None, metavar="N",
+                   help="render base seed: per-frame Monte Carlo seeds derive from it (default: the scene's "
+                        "render.seed, 0 if unset)")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -67,8 +67,8 @@ def scene_sets(args) -> list[str]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("render", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    from render2spike.commands._common import HelpFormatter
+    p = sub.add_parser("render", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     add_scene_options(p)
     p.set_defaults(func=run)
 
@@ -76,7 +76,6 @@ def register(sub) -> None:
 def run(args) -> int:
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
-    args.render_seed = args.seed
     sc = load_scene(args.scene, scene_sets(args), lux=args.lux, duration_s=args.duration, profile=args.profile)
     res = render_scene(sc, args.out, overwrite=args.overwrite, progress=not args.quiet)
     m = res.manifest

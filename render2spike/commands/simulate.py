@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,8 @@ examples:
 
 def register(sub) -> None:
     from sensor.models import MODELS
+
+    from render2spike.commands._common import add_overwrite
     p = sub.add_parser("simulate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", metavar="INPUT", help="frames folder, .npz (rate_e[, t_s]) or .npy (rate_e per interval)")
@@ -43,12 +46,13 @@ def register(sub) -> None:
     p.add_argument("--model", default="elssim", choices=MODELS, help="noise model (default: elssim)")
     p.add_argument("--profile", default="vidar-default", metavar="NAME|PATH",
                    help="sensor profile: bundled name or .npz file (default: vidar-default)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
+    p.add_argument("--seed", type=int, default=0, help="spike seed: seeds every random draw of the simulation (default: 0)")
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator instead of the fast event-driven one")
     p.add_argument("--chunk", type=int, default=32, metavar="K",
                    help="keyframes read per step (memory bound; the result does not depend on it; default 32)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite(p)
     p.set_defaults(func=run)
 
 
@@ -92,13 +96,15 @@ class RateSource:
                                          field="rate_e")
                     self.rate = z["rate_e"].astype(np.float32)
                     self.t_s = z["t_s"].astype(np.float64) if "t_s" in z else None
-            except (OSError, ValueError) as exc:
+            except InputError:
+                raise
+            except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
                 raise InputError(f"not a readable .npz ({exc})", path=self.path) from exc
             self.kind = "array"
         elif self.path.suffix == ".npy":
             try:
                 self.rate = np.load(self.path, allow_pickle=False).astype(np.float32)
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, EOFError) as exc:
                 raise InputError(f"not a readable .npy ({exc})", path=self.path) from exc
             self.t_s = None
             self.kind = "array"
@@ -114,6 +120,12 @@ class RateSource:
             if self.t_s is not None and self.t_s.shape != (self.rate.shape[0],):
                 raise InputError(f"t_s has shape {self.t_s.shape}; expected ({self.rate.shape[0]},)", path=self.path,
                                  field="t_s")
+            from sensor.rates import check_rates, check_times
+            if self.t_s is not None:
+                check_times(self.t_s, path=self.path)
+            check_rates(self.rate, path=self.path)
+            if self.rate.shape[0] == 0 or 0 in self.rate.shape[1:]:
+                raise InputError(f"rate_e is empty (shape {self.rate.shape})", path=self.path, field="rate_e")
             self.shape = self.rate.shape[1:]
             self.n = self.rate.shape[0]
             self.per_interval = self.t_s is None
@@ -141,8 +153,12 @@ def run(args) -> int:
     from sensor import SensorProfile, SpikeSimulator
     from sensor.spikefile import SpikeWriter
 
+    from render2spike.commands._common import check_output
+    from sensor.errors import InputError
+
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else print
+    check_output(args.out, inputs=[args.input], overwrite=args.overwrite, say=say)
     src = RateSource(args.input)
     profile = fit_profile(SensorProfile.load(args.profile), src.shape, say)
     rendered_for = (src.frames.manifest.get("profile") or {}).get("name") if src.kind == "frames" else None
@@ -152,6 +168,12 @@ def run(args) -> int:
     sim = SpikeSimulator(profile, args.model, args.seed, implementation="reference" if args.reference else "fast",
                          per_interval=src.per_interval)
     total = src.n_intervals(profile.interval_s)
+    if total < 1:
+        what = "keyframes span" if not src.per_interval else "input holds"
+        span = (f"{src.t_s[-1] - src.t_s[0]:.6g} s ({src.n} keyframe(s))" if not src.per_interval else "no rows")
+        raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
+                         "(need at least two keyframes one interval apart)", path=args.input,
+                         field="frames" if src.kind == "frames" else "t_s")
     desc = sim.describe()
     extra = {"input_kind": src.kind, "simulator": desc}
     with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,

@@ -130,6 +130,18 @@ def _describe(err) -> str:
     return err.message
 
 
+def check_finite(node, path=None, where: str = "") -> None:
+    """Every number in a scene mapping must be finite (YAML's .nan/.inf and --lux nan pass the schema's bounds)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            check_finite(v, path, f"{where}.{k}" if where else str(k))
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            check_finite(v, path, f"{where}.{i}" if where else str(i))
+    elif isinstance(node, float) and not np.isfinite(node):
+        raise InputError(f"must be a finite number, got {node!r}", path=path, field=where or "(top level)")
+
+
 def validate(data, path=None) -> None:
     """Check ``data`` against the scene schema; raise InputError naming the file and key."""
     try:
@@ -286,6 +298,7 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
         data["duration_s"] = float(duration_s)
     if profile is not None and isinstance(data.get("camera"), dict):
         data["camera"]["profile"] = profile
+    check_finite(data, path)
     validate(data, path)
     data["render"] = _merge_defaults(data.get("render", {}), RENDER_DEFAULTS)
     data["camera"] = _merge_defaults(data["camera"], CAMERA_DEFAULTS) if "rotation_deg" not in data["camera"] else \
@@ -300,6 +313,9 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
     if not has_lights:
         raise InputError("the scene has no light: add a 'lights' entry, an object 'emitter' or an 'xml' scene",
                          path=path, field="lights")
+    if not data["objects"] and "xml" not in data:
+        raise InputError("the scene has nothing to see: add at least one entry to 'objects' (or an 'xml' scene)",
+                         path=path, field="objects")
     if "reference" not in data:
         raise InputError("illuminance_lux needs a 'reference': {point: [x, y, z], normal: [x, y, z]} or "
                          "{object: NAME}", path=path, field="reference")
