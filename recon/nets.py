@@ -495,7 +495,7 @@ def load_checkpoint(path, device="cpu"):
     try:
         model.load_state_dict(ckpt["model"])
     except (RuntimeError, TypeError, AttributeError) as exc:
-        first = str(exc).strip().splitlines()[0][:300]
+        first = " ".join(ln.strip() for ln in str(exc).strip().splitlines()[:2])[:300]
         raise InputError(f"weights do not fit the stored network config ({first})", path=path,
                          field="model") from exc
     dev = pick_device(device) if isinstance(device, str) else device

@@ -208,7 +208,7 @@ def check_light(arr, path, name: str) -> None:
     bad = ~np.isfinite(arr) | (arr < 0)
     idx = tuple(int(x) for x in np.argwhere(bad)[0])
     raise FrameFileError(f"{int(bad.sum())} pixel(s) are non-finite or negative, first at (row, col) = {idx}: "
-                         f"{arr[idx]!r} (expected finite values >= 0)", path=path, field=name)
+                         f"{float(arr[idx])!r} (expected finite values >= 0)", path=path, field=name)
 
 
 def read_frames(folder) -> FrameSequence:

@@ -43,12 +43,12 @@ def check_times(t_s, path=None, offset: int = 0) -> np.ndarray:
     bad = ~np.isfinite(t)
     if bad.any():
         i = int(np.argmax(bad))
-        raise InputError(f"keyframe times must be finite; t_s[{i + offset}] = {t[i]!r}", path=path, field="t_s")
+        raise InputError(f"keyframe times must be finite; t_s[{i + offset}] = {float(t[i])!r}", path=path, field="t_s")
     d = np.diff(t)
     if np.any(d <= 0):
         i = int(np.argmax(d <= 0))
-        raise InputError(f"keyframe times must increase strictly; t_s[{i + offset}] = {t[i]!r} and "
-                         f"t_s[{i + offset + 1}] = {t[i + 1]!r}", path=path, field="t_s")
+        raise InputError(f"keyframe times must increase strictly; t_s[{i + offset}] = {float(t[i])!r} and "
+                         f"t_s[{i + offset + 1}] = {float(t[i + 1])!r}", path=path, field="t_s")
     return t
 
 
@@ -63,7 +63,7 @@ def check_rates(rate_e, path=None, field: str = "rate_e") -> None:
     bad = ~np.isfinite(rate_e) | (rate_e < 0)
     idx = tuple(int(x) for x in np.argwhere(bad)[0])
     raise InputError(f"{int(bad.sum())} value(s) are non-finite or negative, first at index {list(idx)}: "
-                     f"{rate_e[idx]!r} (expected finite photoelectrons per interval >= 0)", path=path, field=field)
+                     f"{float(rate_e[idx])!r} (expected finite photoelectrons per interval >= 0)", path=path, field=field)
 
 
 def n_intervals_spanned(t_first_s: float, t_last_s: float, interval_s: float = INTERVAL_S) -> int:
@@ -307,8 +307,8 @@ class RateSchedule:
             allt = np.concatenate([self._t, t_new])
             if np.any(np.diff(allt) <= 0):
                 i = int(np.argmax(np.diff(allt) <= 0))
-                raise InputError(f"keyframe times must increase strictly across all chunks; t_s[{i}] = {allt[i]!r}, "
-                                 f"t_s[{i + 1}] = {allt[i + 1]!r}", field="t_s")
+                raise InputError(f"keyframe times must increase strictly across all chunks; t_s[{i}] = {float(allt[i])!r}, "
+                                 f"t_s[{i + 1}] = {float(allt[i + 1])!r}", field="t_s")
             if self.t0_s is None and t_new.size:
                 self.t0_s = float(t_new[0])
             self._t = allt
