@@ -20,7 +20,15 @@ from sensor.profile import SensorProfile
 from sensor.spectral import SpectralCurve, blackbody_spd, flat_spd
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "schema" / "scene.schema.json"
-SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
+
+
+def _scenes_dir() -> Path:
+    """The bundled scenes: ``render2spike/scenes`` in an installed wheel, the checkout's ``scenes/`` otherwise."""
+    installed = Path(__file__).resolve().parents[1] / "scenes"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "scenes"
+
+
+SCENES_DIR = _scenes_dir()
 
 #: defaults of the ``render`` block (documented in docs/render.md)
 RENDER_DEFAULTS = {
@@ -49,6 +57,11 @@ def _yaml():
     return yaml
 
 
+def bundled_scenes() -> list[str]:
+    """Names of the bundled scenes (usable wherever a scene file is asked for)."""
+    return sorted(q.stem for q in SCENES_DIR.glob("*.yaml")) if SCENES_DIR.is_dir() else []
+
+
 def resolve_scene_path(scene) -> Path:
     """A scene path as given, or the name of a bundled scene (``rotating_disk`` -> scenes/rotating_disk.yaml)."""
     p = Path(scene)
@@ -57,7 +70,7 @@ def resolve_scene_path(scene) -> Path:
     for cand in (SCENES_DIR / p.name, SCENES_DIR / f"{p.name}.yaml"):
         if cand.is_file():
             return cand
-    bundled = ", ".join(sorted(q.stem for q in SCENES_DIR.glob("*.yaml"))) if SCENES_DIR.is_dir() else "none"
+    bundled = ", ".join(bundled_scenes()) or "none"
     raise InputError(f"scene file not found (bundled scenes: {bundled})", path=scene)
 
 
