@@ -23,12 +23,13 @@ def add_overwrite(p, help: str = OVERWRITE_HELP) -> None:
     p.add_argument("--overwrite", action="store_true", help=help)
 
 
-def _same_or_inside(a: Path, b: Path) -> bool:
+def _same_or_inside(out: Path, src: Path) -> bool:
+    """Whether ``out`` is ``src`` or lies inside the folder ``src``."""
     try:
-        a, b = a.resolve(), b.resolve()
+        out, src = out.resolve(), src.resolve()
     except OSError:
         return False
-    return a == b or b in a.parents or a in b.parents
+    return out == src or src in out.parents
 
 
 def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = False, flag: str = "--out",

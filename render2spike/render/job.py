@@ -197,6 +197,10 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             log(f"render: {out} is up to date ({len(manifest['frames'])} frames, scene hash {scene_hash})")
             return RenderResult(out, len(manifest["frames"]), 0, int(manifest.get("spp", 0)), scene_hash,
                                 time.perf_counter() - t_start, True, manifest)
+    if manifest is None and state is None and not overwrite and any(
+            not p.name.startswith(".") for p in out.iterdir()):
+        raise InputError("this folder is not empty and holds no render2spike frames; choose an empty or new "
+                         "folder for --out (or pass --overwrite to render into it anyway)", path=out)
     if state is not None and state.get("format_version") != 2:
         _clean(out, state, manifest)  # a state from before the journal: its frames are named differently
         state = None

@@ -178,3 +178,46 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     os.utime(old, (time.time() - 7200, time.time() - 7200))
     gone = sweep_parts(tmp_path)
     assert sorted(p.name for p in gone) == sorted([f".spikes.part-{dead.pid}-abc.npz", old.name])
+
+
+def test_run_into_a_folder_of_another_seed_is_refused(two_runs):
+    scene, (a, _) = two_runs
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in a.rglob("*"))
+    r = _cli("run", str(scene), "--out", str(a), "--quiet", "--seed", "6")
+    assert r.returncode == 2 and "seed" in r.stderr and "--overwrite" in r.stderr, r.stderr
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in a.rglob("*")) == before
+
+
+def test_render_into_a_folder_of_other_files_is_refused(two_runs, tmp_path):
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    scene, _ = two_runs
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds no render2spike frames"):
+        render_scene(load_scene(scene), tmp_path, progress=False, log=lambda *x: None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_progress_bar_never_goes_backwards(tmp_path, monkeypatch):
+    """The bar counts camera time: its total is fixed and its position only grows, refinements included."""
+    import tqdm.auto
+
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    record = []
+
+    class Recorder(tqdm.auto.tqdm):
+        def update(self, n=1):
+            out = super().update(n)
+            record.append((self.n, self.total))
+            return out
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recorder)
+    p = _scene(tmp_path)
+    # a fast disk and a loose base rate: adaptive refinement adds frames between base keyframes
+    sc = load_scene(p, ["objects.disk.motion.parametric.0.rotate.omega_rad_s=200", "render.keyframe_rate_hz=100",
+                        "render.adaptive.max_rate_hz=800", "render.adaptive.tolerance=0.05"])
+    res = render_scene(sc, tmp_path / "frames", progress=True, log=lambda *x: None)
+    assert res.manifest["temporal_sampling"]["n_refined"] > 0
+    ns = [n for n, _ in record]
+    assert len({t for _, t in record}) == 1 and ns == sorted(ns) and ns[-1] == pytest.approx(record[0][1])
