@@ -186,6 +186,36 @@ def summarise(rows: list[dict]) -> list[dict]:
     return out
 
 
+def light_level_note(summ: list[dict], profile) -> list[str]:
+    """Markdown lines explaining why TFP can lose PSNR at high light, with the numbers of this study.
+
+    Each spike resets the pixel at the end of the interval in which its charge crossed the threshold
+    theta, so a noiseless pixel collecting lambda e- per interval fires every ceil(theta / lambda)
+    intervals: TFP reads 1 / ceil(theta / lambda) spikes per interval instead of lambda / theta. While
+    theta / lambda is large the two agree; when it falls to a few intervals, neighbouring brightness
+    levels collapse onto the steps 1/2, 1/3, 1/4, ... and PSNR against the true rate falls.
+    """
+    from sensor import SensorProfile
+    theta = float(SensorProfile.load(profile).threshold_e)
+    rows = ["## Reading the table: the light level", "",
+            "Each spike resets the pixel at the end of the interval in which it crossed the threshold, so a "
+            "noiseless pixel with lambda e-/interval fires every ceil(theta/lambda) intervals and TFP reads "
+            "1/ceil(theta/lambda) instead of lambda/theta. At low light the two agree; once theta/lambda is a few "
+            "intervals, bright pixels collapse onto the levels 1/2, 1/3, 1/4, ... and TFP's PSNR can fall as the "
+            "light rises. `tfp-dt` corrects this dead time. For this study (theta = "
+            f"{theta:g} e-):", "",
+            "| lux | mean signal [e-/interval] | theta / signal [intervals] | ideal TFP / true rate at the mean signal |", "|---|---|---|---|"]
+    seen = {}
+    for r in summ:
+        seen.setdefault(r["lux"], r["signal_e_per_interval"])
+    for lx in sorted(seen):
+        lam = float(seen[lx])
+        if lam > 0:
+            k = int(np.ceil(theta / lam - 1e-9))
+            rows.append(f"| {lx:g} | {lam:.3g} | {theta / lam:.3g} | {(1.0 / k) / (lam / theta):.3f} |")
+    return rows + [""]
+
+
 def write_study(out_dir, rows: list[dict], jobs: list[SweepJob], title: str) -> list[Path]:
     """CSV of every row, a Markdown table (models x lux per method), a PNG plot and a JSON record."""
     out_dir = Path(out_dir)
@@ -213,6 +243,7 @@ def write_study(out_dir, rows: list[dict], jobs: list[SweepJob], title: str) -> 
                 cells.append(f"{r[0]['psnr_db']:.2f} / {r[0]['ssim']:.3f}" if r else "")
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")
+    lines += light_level_note(summ, jobs[0].profile)
     paths.append(write_text_atomic(out_dir / "summary.md", "\n".join(lines)))
 
     import matplotlib

@@ -246,7 +246,7 @@ class SceneRenderer:
         meter_se = abs(vals[0] - vals[1]) / 2.0
         total = direct + meter
         if not (np.isfinite(total) and total > 0):
-            raise InputError(f"no usable light reaches the reference (raw illuminance {total!r}): check the "
+            raise InputError(f"no light reaches the reference (raw illuminance {total!r}): check the "
                              "lights' strengths and directions, the reference normal and occluders",
                              path=self.scene.path, field="reference")
         return {"raw_e_direct_delta": direct, "raw_e_meter": meter, "raw_e_meter_stderr": meter_se,
