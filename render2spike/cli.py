@@ -116,6 +116,8 @@ def main(argv=None) -> int:
     finally:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
+        from sensor.fileio import remove_live_temps
+        remove_live_temps()  # temp files of writes a signal cut short before their own cleanup ran
 
 
 if __name__ == "__main__":  # pragma: no cover

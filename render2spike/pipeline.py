@@ -120,6 +120,8 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     t0 = time.perf_counter()
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a folder", path=out, field="--out")
+    from sensor.lock import sweep_parts
+    sweep_parts(out, log=log)
     sc = load_scene(scene, sets, lux=lux, duration_s=duration_s, profile=profile)
     old = None
     if (out / "summary.json").is_file() and not overwrite:

@@ -13,6 +13,22 @@ import tempfile
 from pathlib import Path
 
 
+#: temp files of atomic writes still in progress in this process (removed by :func:`remove_live_temps`)
+_LIVE_TEMPS: set = set()
+
+
+def remove_live_temps() -> list[Path]:
+    """Delete the temp files of atomic writes this process has not finished (the CLI calls this on abort,
+    for a signal that arrived before a writer's cleanup could run)."""
+    gone = []
+    for tmp in list(_LIVE_TEMPS):
+        with contextlib.suppress(OSError):
+            Path(tmp).unlink()
+            gone.append(Path(tmp))
+        _LIVE_TEMPS.discard(tmp)
+    return gone
+
+
 @contextlib.contextmanager
 def atomic_path(path, suffix: str | None = None):
     """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
@@ -32,6 +48,7 @@ def atomic_path(path, suffix: str | None = None):
                                dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    _LIVE_TEMPS.add(tmp)
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the final file the usual permissions
@@ -45,6 +62,8 @@ def atomic_path(path, suffix: str | None = None):
             from .errors import DiskFullError
             raise DiskFullError(f"disk full while writing {path}", path=path) from exc
         raise
+    finally:
+        _LIVE_TEMPS.discard(tmp)
 
 
 def is_disk_full(exc: BaseException) -> bool:
