@@ -116,14 +116,18 @@ def plan_lux_sweep(frames, lux_values, models, seeds, *, profile="vidar-default"
     from sensor.profile import SensorProfile
     fs = read_frames(frames)
     ref = float(reference_lux) if reference_lux else reference_lux_of(frames)
+    if not (0 < ref < float("inf")):
+        raise InputError(f"the reference illuminance must be finite and > 0, got {ref!r}",
+                         path=None if reference_lux else Path(frames) / "frames.json",
+                         field="--reference-lux" if reference_lux else "illuminance_lux")
     for m in models:
         if m not in MODELS:
             raise UnknownMethodError("spike model", m, MODELS)
     for m in methods:
         if m not in STUDY_METHODS:
             raise UnknownMethodError("study method", m, STUDY_METHODS)
-    if any(not (lx > 0) for lx in lux_values):
-        raise InputError(f"lux values must be > 0, got {list(lux_values)}", field="--lux")
+    if any(not (0 < lx < float("inf")) for lx in lux_values):
+        raise InputError(f"lux values must be finite and > 0, got {list(lux_values)}", field="--lux")
     prof = SensorProfile.load(profile)
     T = n_intervals_spanned(fs.times_s[0], fs.times_s[-1], prof.interval_s)
     if T < window:

@@ -298,3 +298,15 @@ def test_sigterm_is_a_clean_abort(tmp_path):
     assert proc.returncode == 143, err
     assert "terminated" in err and "Traceback" not in err
     assert not list(tmp_path.glob(".*part*")) and not (tmp_path / "s.dat").exists()
+
+
+def test_bad_study_light_levels(tmp_path, capsys):
+    folder = _frames(tmp_path, n=4)
+    _edit_manifest(folder, lambda m: m.__setitem__("illuminance_lux", float("nan")))
+    out = tmp_path / "st"
+    expect_refused(["study", folder, "--out", out, "--window", "20", "--quiet"], tmp_path, capsys,
+                   "frames.json", "illuminance_lux")
+    expect_refused(["study", folder, "--out", out, "--window", "20", "--lux", "nan", "--reference-lux", "10",
+                    "--quiet"], tmp_path, capsys, "--lux")
+    expect_refused(["study", folder, "--out", out, "--window", "20", "--reference-lux", "inf", "--quiet"],
+                   tmp_path, capsys, "--reference-lux")
