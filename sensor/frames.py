@@ -199,16 +199,12 @@ class FrameSequence:
 
 def check_light(arr, path, name: str) -> None:
     """Raise FrameFileError naming ``path``, channel ``name`` and the first pixel that is non-finite or < 0."""
-    arr = np.asarray(arr)
-    if arr.size == 0:
-        return
-    lo, hi = arr.min(), arr.max()  # NaN propagates: one pass in the common, good case
-    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
-        return
-    bad = ~np.isfinite(arr) | (arr < 0)
-    idx = tuple(int(x) for x in np.argwhere(bad)[0])
-    raise FrameFileError(f"{int(bad.sum())} pixel(s) are non-finite or negative, first at (row, col) = {idx}: "
-                         f"{float(arr[idx])!r} (expected finite values >= 0)", path=path, field=name)
+    from .rates import bad_values
+    found = bad_values(arr)
+    if found:
+        n, idx, v = found
+        raise FrameFileError(f"{n} pixel(s) are non-finite or negative, first at (row, col) = {idx}: {v!r} "
+                             "(expected finite values >= 0)", path=path, field=name)
 
 
 def read_frames(folder) -> FrameSequence:

@@ -52,18 +52,26 @@ def check_times(t_s, path=None, offset: int = 0) -> np.ndarray:
     return t
 
 
+def bad_values(arr):
+    """None if ``arr`` is all finite and >= 0, else (how many values are not, index of the first, its value)."""
+    arr = np.asarray(arr)
+    if arr.size == 0:
+        return None
+    lo, hi = arr.min(), arr.max()  # NaN propagates through min/max: one pass when all is well
+    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
+        return None
+    bad = ~np.isfinite(arr) | (arr < 0)
+    idx = tuple(int(x) for x in np.argwhere(bad)[0])
+    return int(bad.sum()), idx, float(arr[idx])
+
+
 def check_rates(rate_e, path=None, field: str = "rate_e") -> None:
     """Raise InputError naming the first (keyframe, row, col) where ``rate_e`` is non-finite or negative."""
-    rate_e = np.asarray(rate_e)
-    if rate_e.size == 0:
-        return
-    lo, hi = rate_e.min(), rate_e.max()  # NaN propagates through min/max: one pass when all is well
-    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
-        return
-    bad = ~np.isfinite(rate_e) | (rate_e < 0)
-    idx = tuple(int(x) for x in np.argwhere(bad)[0])
-    raise InputError(f"{int(bad.sum())} value(s) are non-finite or negative, first at index {list(idx)}: "
-                     f"{float(rate_e[idx])!r} (expected finite photoelectrons per interval >= 0)", path=path, field=field)
+    found = bad_values(rate_e)
+    if found:
+        n, idx, v = found
+        raise InputError(f"{n} value(s) are non-finite or negative, first at index {list(idx)}: {v!r} (expected "
+                         "finite photoelectrons per interval >= 0)", path=path, field=field)
 
 
 def n_intervals_spanned(t_first_s: float, t_last_s: float, interval_s: float = INTERVAL_S) -> int:
