@@ -65,11 +65,15 @@ def bad_values(arr):
     return int(bad.sum()), idx, float(arr[idx])
 
 
-def check_rates(rate_e, path=None, field: str = "rate_e") -> None:
-    """Raise InputError naming the first (keyframe, row, col) where ``rate_e`` is non-finite or negative."""
+def check_rates(rate_e, path=None, field: str = "rate_e", offset: int = 0) -> None:
+    """Raise InputError naming the first (keyframe, row, col) where ``rate_e`` is non-finite or negative.
+
+    ``offset`` is added to the keyframe index (for chunks of a longer array).
+    """
     found = bad_values(rate_e)
     if found:
         n, idx, v = found
+        idx = (idx[0] + offset,) + tuple(idx[1:])
         raise InputError(f"{n} value(s) are non-finite or negative, first at index {list(idx)}: {v!r} (expected "
                          "finite photoelectrons per interval >= 0)", path=path, field=field)
 

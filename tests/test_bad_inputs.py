@@ -137,7 +137,7 @@ def test_output_protection(tmp_path, capsys):
     assert main(["simulate", str(p), "--out", str(out), "--quiet", "--model", "ideal"]) == 0
     expect_refused(["simulate", p, "--out", out, "--quiet"], tmp_path, capsys, "s.npz", "--overwrite")
     assert main(["simulate", str(p), "--out", str(out), "--quiet", "--overwrite", "--seed", "3"]) == 0
-    assert sensor.read_spikes(out)[1]["seed"] == 3
+    assert sensor.read_spikes_meta(out)["seed"] == 3
     expect_refused(["reconstruct", out, "--out", out], tmp_path, capsys, "s.npz")
     (tmp_path / "rec").mkdir()
     (tmp_path / "rec" / "keep.txt").write_text("mine")
