@@ -137,7 +137,15 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)
                              + "); pass --overwrite to replace it, or choose another --out", path=out)
-    res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, log=log)
+    created = not out.exists()
+    try:
+        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, log=log)
+    except BaseException:
+        if created:  # the render left nothing (it removes a frames folder it wrote nothing into): no empty OUT
+            import contextlib
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     t_render = time.perf_counter() - t0
 
     t1 = time.perf_counter()

@@ -270,6 +270,7 @@ def test_bad_scenes_are_refused_before_anything_is_written(tmp_path, capsys):
     p = _scene(tmp_path, objects=[])
     expect_refused(["run", p, "--out", out], tmp_path, capsys, "scene.yaml", "objects", "nothing to see")
     expect_refused(["render", "no_such_scene", "--out", out], tmp_path, capsys, "no_such_scene", "bundled scenes")
+    expect_refused(["render", p, "--out", out, "--seed", "3"], tmp_path, capsys, "--seed", "--render-seed")
 
 
 @pytest.mark.render
@@ -278,6 +279,7 @@ def test_scene_whose_lights_never_reach_the_reference(tmp_path, capsys):
     p = _scene(tmp_path, lights=[{"name": "sun", "type": "directional", "direction": [0, 0, 1], "strength": 1.0}])
     expect_refused(["render", p, "--out", tmp_path / "out", "--quiet"], tmp_path, capsys, "scene.yaml",
                    "reference")
+    expect_refused(["run", p, "--out", tmp_path / "out", "--quiet"], tmp_path, capsys, "scene.yaml", "reference")
 
 
 # ---------------------------------------------------------------------------- SIGTERM

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 HELP = "render a scene file to irradiance frames (OpenEXR, physical units)"
 DESCRIPTION = """\
 Render a moving 3-D scene with Mitsuba 3 (spectral) into a frames folder:
@@ -74,12 +76,17 @@ def register(sub) -> None:
     from render2spike.commands._common import HelpFormatter
     p = sub.add_parser("render", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     add_scene_options(p)
+    p.add_argument("--seed", type=int, default=None, help=argparse.SUPPRESS)  # only to say what to use instead
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    if args.seed is not None:
+        raise InputError("`render` makes no spikes, and --seed is the spike seed in every command; use "
+                         "--render-seed N to seed the render", field="--seed")
     sc = load_scene(args.scene, scene_sets(args), lux=args.lux, duration_s=args.duration, profile=args.profile)
     res = render_scene(sc, args.out, overwrite=args.overwrite, progress=not args.quiet)
     m = res.manifest
