@@ -100,3 +100,15 @@ def test_study_errors_are_clear(frames):
     with pytest.raises(sensor.UnknownMethodError):
         plan_lux_sweep(frames, [1.0], ["elssim"], [0], window=64, methods=["nope"])
     assert parse_model_spec("elssim:crossing") == ("elssim", "crossing")
+
+
+def test_cli_old_and_new_forms(frames, tmp_path):
+    from render2spike.cli import main
+    args = ["--out", str(tmp_path / "a"), "--lux", "5,50", "--models", "ideal", "--seeds", "0", "--window", "64",
+            "--preroll", "50", "--quiet"]
+    assert main(["study", str(frames)] + args) == 0  # the old form: study FRAMES ...
+    assert (tmp_path / "a" / "ssim_vs_lux.png").is_file()
+    args[1] = str(tmp_path / "b")
+    assert main(["study", "lux", str(frames)] + args) == 0
+    assert (tmp_path / "a" / "summary.csv").read_text() == (tmp_path / "b" / "summary.csv").read_text()
+    assert main(["study", "nonsense"]) == 2
