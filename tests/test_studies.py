@@ -112,3 +112,17 @@ def test_cli_old_and_new_forms(frames, tmp_path):
     assert main(["study", "lux", str(frames)] + args) == 0
     assert (tmp_path / "a" / "summary.csv").read_text() == (tmp_path / "b" / "summary.csv").read_text()
     assert main(["study", "nonsense"]) == 2
+
+
+def test_a_network_checkpoint_is_a_method(frames, tmp_path):
+    torch = pytest.importorskip("torch")
+    from recon.nets import RSIRConfig, RSIRNet, save_checkpoint
+    torch.manual_seed(0)
+    ckpt = tmp_path / "net.pt"
+    save_checkpoint(ckpt, RSIRNet(RSIRConfig.tiny(width=8)), None, step=0)
+    jobs = plan_lux_sweep(frames, [50.0], ["elssim"], [0], window=320, n_centers=1,
+                          methods=["tfp", f"rsir:{ckpt}=tiny net"], preroll=100)
+    rows = run_job(jobs[0])
+    assert {r["method"] for r in rows} == {"TFP (M=320)", "tiny net", NOISE_FREE_LABEL}
+    with pytest.raises(sensor.InputError, match="window 320"):
+        plan_lux_sweep(frames, [50.0], ["elssim"], [0], window=64, methods=[f"rsir:{ckpt}"])
