@@ -449,11 +449,11 @@ class RenderedDataset(_Base):
 
     @functools.lru_cache(maxsize=4)
     def _stored(self, si: int):
-        from sensor import read_spikes
+        from sensor.spikefile import read_spikes_with_meta
         folder = self.seqs[si].folder
         p = Path(self.spikes_name)
         p = p if p.is_absolute() else folder / p
-        s, meta = read_spikes(p)
+        s, meta = read_spikes_with_meta(p)
         ch, cw = self.crop
         return s[:, self.top:self.top + ch, self.left:self.left + cw], meta
 

@@ -94,7 +94,7 @@ def test_samples_hold_truth_and_train_reads_the_folder(frames, tmp_path):
     assert info["illuminance_lux"] == 50 and info["seed"] == 3 and info["preroll_intervals"] == 100
     with np.load(sample / "truth.npz") as z:
         clean, rate, centers = z["clean"], z["rate_e"], z["centers"]
-    spikes, meta = sensor.read_spikes(sample / "spikes.npz")
+    spikes, meta = sensor.read_spikes_with_meta(sample / "spikes.npz")
     assert spikes.shape == (360, 8, 12) and meta["model"] == "elssim" and clean.shape == (len(centers), 8, 12)
     # 50 of the 100 lux the frames were rendered at: half the rate
     assert float(rate.mean()) == pytest.approx(0.5 * 900 * 0.3, rel=1e-5)
