@@ -4,6 +4,7 @@ One command::
 
     python benchmarks/run.py                 # full table (a few minutes on 2 cores)
     python benchmarks/run.py --quick         # smoke run (0.2 s of camera time, small reference)
+    python benchmarks/run.py --reset interval crossing --models elssim   # elssim under both pixel resets
 
 writes ``benchmarks/results/benchmark.md`` and ``benchmark.csv``.
 
@@ -114,6 +115,8 @@ def run_one(cfg: dict) -> dict:
     if cfg.get("threads"):
         os.environ["RENDER2SPIKE_THREADS"] = str(cfg["threads"])
     profile = _profile(cfg["profile"])
+    if cfg.get("reset"):
+        profile = profile.replace(reset=cfg["reset"])
     model, impl, lux = cfg["model"], cfg["implementation"], float(cfg["lux"])
     duration = float(cfg["duration_s"])
     jit_s = _warmup(profile, model, impl)
@@ -173,7 +176,8 @@ def run_one(cfg: dict) -> dict:
     del kf_per_int
     steps = n_int * H * W
     return {
-        "model": model, "implementation": sim.implementation, "lux": lux,
+        "model": model, "reset": profile.reset if model == "elssim" else "", "implementation": sim.implementation,
+        "lux": lux,
         "rate_e_mean": float(lux_to_rate_e(lux, profile)), "threshold_e": profile.threshold_e,
         "intervals": n_int, "camera_s": n_int * profile.interval_s, "wall_s": wall,
         "pixel_steps_per_s": steps / wall, "realtime_factor": n_int * profile.interval_s / wall,
@@ -335,7 +339,7 @@ def _fmt(x, nd=2):
 
 def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
     out_dir.mkdir(parents=True, exist_ok=True)
-    cols = ["model", "implementation", "lux", "rate_e_mean", "intervals", "wall_s", "pixel_steps_per_s",
+    cols = ["model", "reset", "implementation", "lux", "rate_e_mean", "intervals", "wall_s", "pixel_steps_per_s",
             "realtime_factor", "speedup_vs_reference", "spikes_per_pixel_interval", "peak_traced_mib", "peak_rss_mib",
             "jit_s", "threads"]
     buf = io.StringIO()
@@ -363,12 +367,13 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
              f"Reference: {meta['ref_intervals']} intervals, throughput extrapolated (cost per interval is constant). "
              "Real time = 2.0e9 pixel-steps/s (400 x 250 at 20 kHz). JIT/cache-load time is excluded from the "
              "throughput and shown in `jit_s`.", "",
-             "| model | impl | lux | e-/interval | intervals | wall s | pixel-steps/s | x real time | speed-up vs ref "
-             "| spikes/px/interval | peak traced MiB | peak RSS MiB | jit s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| model | reset | impl | lux | e-/interval | intervals | wall s | pixel-steps/s | x real time "
+             "| speed-up vs ref | spikes/px/interval | peak traced MiB | peak RSS MiB | jit s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append("| " + " | ".join([
-            r["model"], r["implementation"] + (" (extrap.)" if r.get("extrapolated") else ""), _fmt(r["lux"], 1),
+            r["model"], r.get("reset", ""), r["implementation"] + (" (extrap.)" if r.get("extrapolated") else ""),
+            _fmt(r["lux"], 1),
             _fmt(r["rate_e_mean"]), str(r["intervals"]), _fmt(r["wall_s"]), _fmt(r["pixel_steps_per_s"]),
             _fmt(r["realtime_factor"], 3), _fmt(r.get("speedup_vs_reference", "")), _fmt(r["spikes_per_pixel_interval"], 4),
             _fmt(r["peak_traced_mib"], 1), _fmt(r["peak_rss_mib"], 0), _fmt(r["jit_s"])]) + " |")
@@ -401,6 +406,9 @@ def main(argv=None):
     ap.add_argument("--lux", type=float, nargs="+", default=list(LUX))
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--profile", default="vidar-default")
+    ap.add_argument("--reset", nargs="+", choices=("interval", "crossing"), default=None,
+                    help="pixel reset(s) for elssim (default: the profile's own; vidar-default: crossing); "
+                         "ideal and isi have one pixel and run once")
     ap.add_argument("--sink", choices=("disk", "none"), default="disk")
     ap.add_argument("--threads", type=int, default=0, help="worker threads of the fast path (default: all CPUs)")
     ap.add_argument("--no-memory-scan", action="store_true", help="skip the peak-memory-vs-duration rows")
@@ -424,20 +432,24 @@ def main(argv=None):
     rows = []
     if a.only_cli:
         a.models, a.no_memory_scan = [], True
-    for model in a.models:
-        for lux in a.lux:
-            ref = _subprocess(dict(common, model=model, implementation="reference", lux=lux,
-                                   duration_s=float(intervals_to_seconds(a.ref_intervals))))
-            ref["extrapolated"] = True
-            fast = _subprocess(dict(common, model=model, implementation="fast", lux=lux, duration_s=a.duration))
-            fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]
-            ref["speedup_vs_reference"] = 1.0
-            for r in (fast, ref):
-                rows.append(r)
-                print(f"{r['model']:7s} {r['implementation']:9s} {lux:6g} lux: {r['pixel_steps_per_s']:.3e} "
-                      f"pixel-steps/s, x{r['realtime_factor']:.3f} real time, speed-up "
-                      f"{r['speedup_vs_reference']:.1f}, peak {r['peak_traced_mib']:.0f} MiB traced / "
-                      f"{r['peak_rss_mib']:.0f} MiB RSS, jit {r['jit_s']:.2f} s", flush=True)
+    # resets alternate at each lux, so that their rows are measured close together (ratios under a drifting load)
+    runs = [(m, lux, r) for m in a.models for lux in a.lux
+            for r in ((a.reset or [None]) if m == "elssim" else [None])]
+    for model, lux, reset in runs:
+        ref = _subprocess(dict(common, model=model, reset=reset, implementation="reference", lux=lux,
+                               duration_s=float(intervals_to_seconds(a.ref_intervals))))
+        ref["extrapolated"] = True
+        fast = _subprocess(dict(common, model=model, reset=reset, implementation="fast", lux=lux,
+                                duration_s=a.duration))
+        fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]
+        ref["speedup_vs_reference"] = 1.0
+        for r in (fast, ref):
+            rows.append(r)
+            print(f"{r['model']:7s} {r['reset']:8s} {r['implementation']:9s} {lux:6g} lux: "
+                  f"{r['pixel_steps_per_s']:.3e} "
+                  f"pixel-steps/s, x{r['realtime_factor']:.3f} real time, speed-up "
+                  f"{r['speedup_vs_reference']:.1f}, peak {r['peak_traced_mib']:.0f} MiB traced / "
+                  f"{r['peak_rss_mib']:.0f} MiB RSS, jit {r['jit_s']:.2f} s", flush=True)
     mem_rows = []
     if not a.no_memory_scan and "elssim" in a.models:
         for d in (a.duration / 2, a.duration, a.duration * 2):
