@@ -85,7 +85,10 @@ def write_frame(path, phi, illuminance_lux=None, *, time_s: float, attrs: dict |
     if E.shape != phi.shape:
         raise FrameFileError(f"E shape {E.shape} differs from Phi shape {phi.shape}", path=path, field="E")
     header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
+        # uncompressed: rendered float32 frames carry Monte Carlo noise in every mantissa, so ZIP saves ~2 %
+        # of the size for ~3x the write time (22 vs 7 ms at 400 x 250; a third of the render's per-frame cost
+        # at low spp); readers handle any compression
+        "compression": OpenEXR.NO_COMPRESSION,
         "type": OpenEXR.scanlineimage,
         "time_s": np.array(float(time_s), dtype=np.float64),
         "units": UNITS_STRING,

@@ -33,11 +33,13 @@ examples:
   render2spike simulate out/frames --out spikes.npz
   render2spike simulate rate.npz --out spikes.dat --model isi --seed 7
   render2spike simulate out/frames --out ref.npz --reference   # step-by-step reference simulator
+  render2spike simulate rate.npz --out alg2.npz --reset interval  # Algorithm 2's end-of-interval reset
 """
 
 
 def register(sub) -> None:
     from sensor.models import MODELS
+    from sensor.profile import RESETS
 
     from render2spike.commands._common import add_overwrite
     p = sub.add_parser("simulate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
@@ -48,6 +50,9 @@ def register(sub) -> None:
     p.add_argument("--profile", default="vidar-default", metavar="NAME|PATH",
                    help="sensor profile: bundled name or .npz file (default: vidar-default)")
     p.add_argument("--seed", type=int, default=0, help="spike seed: seeds every random draw of the simulation (default: 0)")
+    p.add_argument("--reset", choices=RESETS, default=None,
+                   help="pixel reset of elssim, overriding the profile's: 'crossing' (fires and resets the moment "
+                        "the charge reaches the threshold; vidar-default) or 'interval' (Algorithm 2 as published)")
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator instead of the fast event-driven one")
     p.add_argument("--chunk", type=int, default=32, metavar="K",
@@ -243,6 +248,8 @@ def run(args) -> int:
     check_output(args.out, inputs=[args.input], overwrite=args.overwrite, say=say)
     src = RateSource(args.input)
     profile = fit_profile(SensorProfile.load(args.profile), src.shape, say)
+    if getattr(args, "reset", None):
+        profile = profile.replace(reset=args.reset)
     rendered_for = (src.frames.manifest.get("profile") or {}).get("name") if src.kind == "frames" else None
     if rendered_for and rendered_for != profile.name:
         say(f"warning: the frames were rendered for profile '{rendered_for}' (its QE weights Phi); simulating "

@@ -28,7 +28,7 @@ examples:
   render2spike study lux out/trans --out out/lux --lux 0.5,5,50,500 --models elssim,isi --seeds 0,1,2
   render2spike study motion translating_object --param speed_px_per_ms=0.1,0.3,1 --out out/motion \\
       --duration 0.03 --set render.spp=16
-  render2spike study generalisation --data spec.yaml --train-models ideal,isi,elssim --out out/gen
+  render2spike study generalisation --data spec.yaml --train-models ideal,isi,elssim:crossing --out out/gen
 """
 STUDIES = ("lux", "motion", "generalisation")
 
@@ -152,14 +152,15 @@ items; rows: training model, plus the classic baselines; columns: test model),
 heatmap.png and study.json.""", epilog="""\
 examples:
   render2spike study generalisation --data spec.yaml --out out/gen --train-models ideal,isi,elssim \\
-      --test-models ideal,isi,elssim --steps 200 --crop 32x32
+      --test-models ideal,isi,elssim:interval,elssim:crossing --steps 200 --crop 32x32
   render2spike study generalisation --data spec.yaml --out out/gen --reuse elssim=runs/big/model.pt
 """)
     p.add_argument("--data", required=True, metavar="SPEC.yaml", help="dataset spec (scenes, lux, parameters)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty output folder")
-    p.add_argument("--train-models", type=_words, default=["ideal", "isi", "elssim"], metavar="M1,M2",
-                   help="one network per model (ideal, isi, elssim, MODEL:RESET; default ideal,isi,elssim)")
+    p.add_argument("--train-models", type=_words, default=["ideal", "isi", "elssim:interval", "elssim:crossing"],
+                   metavar="M1,M2", help="one network per model (ideal, isi, elssim, MODEL:RESET; a bare elssim "
+                   "follows the profile's reset; default ideal,isi,elssim:interval,elssim:crossing)")
     p.add_argument("--test-models", type=_words, default=None, metavar="M1,M2",
                    help="test data models (default: the training models)")
     p.add_argument("--baselines", default="tfp-dt", metavar="M1,M2",

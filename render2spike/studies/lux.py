@@ -333,7 +333,7 @@ def write_study(out_dir, rows: list[dict], jobs: list[SweepJob], title: str) -> 
                 want = NOISE_FREE_LABEL if m == "noise-free" else meth
                 r = [x for x in summ if x["lux"] == lx and x["model"] == m and x["method"] == want]
                 cells.append(f"{_fmt(r[0]['psnr_db'], r[0]['psnr_sd'], 2)} / {_fmt(r[0]['ssim'], r[0]['ssim_sd'], 3)}"
-                             + (" ⚠" if r[0]["few_light_spikes"] else "") if r else "")
+                             + (" ⚠" if r[0]["few_light_spikes"] and m != "noise-free" else "") if r else "")
             if any(cells):
                 lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")
