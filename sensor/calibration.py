@@ -227,7 +227,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     f_map = base.refractory_fraction.astype(np.float64)
     if fit["reset"] == "crossing":
         def moments(m_, s_, p_, f_):
-            return crossing_hot_pixel_isi_moments(m_, s_, p_, f_, n_bins=120)
+            return crossing_hot_pixel_isi_moments(m_, s_, p_, f_, n_bins=200)
     else:
         def moments(m_, s_, p_, f_):
             return hot_pixel_isi_moments(m_, s_, p_)
