@@ -22,13 +22,13 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
 
     Returns the written paths. Images are float32 (H, W) in :data:`UNITS`.
     """
-    from sensor import read_spikes
+    from sensor.spikefile import read_spikes_with_meta
     from sensor.fileio import provenance
     fmts = {f.strip().lower() for f in formats.split(",") if f.strip()}
     bad = fmts - {"png", "exr", "npy"}
     if bad or not fmts:
         raise InputError(f"formats must be a subset of png, exr, npy; got '{formats}'", field="--formats")
-    spikes, meta = read_spikes(spikes_path, height, width, drop_columns)
+    spikes, meta = read_spikes_with_meta(spikes_path, height=height, width=width, drop_columns=drop_columns)
     T, H, W = spikes.shape
     prof = None
     if profile:

@@ -35,7 +35,8 @@ training item, geometric mean for test items; default 5-50), ``ipf``
 ``split_file`` (default the shipped DAVIS-2017 85/5 split).
 
 ``rendered`` only: ``stride`` (intervals between items), ``spikes`` (stored
-spike file inside each folder).
+spike file inside each folder). A path may also be a ``render2spike dataset``
+folder (``manifest.json``): its finished samples' frames folders, in order.
 
 ``sdmd`` only: ``height``, ``width``, ``drop_columns`` (.dat layout; defaults
 250, 400, 0; per-scene meta.json overrides), ``split_file`` (default

@@ -76,7 +76,7 @@ def _as_recording(x, height, width, drop_columns, what, i):
     if isinstance(x, np.ndarray):
         s = x
     else:
-        s, _ = read_spikes(x, height=height, width=width, drop_columns=drop_columns)
+        s = read_spikes(x, height=height, width=width, drop_columns=drop_columns)
     s = np.asarray(s)
     if s.ndim != 3 or s.shape[0] < 2:
         raise CalibrationError(f"{what} recording {i} must be (T >= 2, H, W) spikes; got shape {s.shape}",

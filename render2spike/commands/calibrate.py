@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 HELP = "estimate a sensor profile from dark and flat-field spike recordings"
@@ -43,8 +42,8 @@ examples:
 
 def register(sub) -> None:
     from sensor.calibration import DEFAULT_HOT_THRESHOLD
-    p = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    from render2spike.commands._common import HelpFormatter, add_overwrite
+    p = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--dark", nargs="+", required=True, metavar="FILE", help="dark recordings (the paper uses 20)")
     p.add_argument("--flat", nargs="+", required=True, metavar="FILE",
                    help="flat-field recordings, one per brightness level (>= 2 levels)")
@@ -64,12 +63,16 @@ def register(sub) -> None:
                    help="impose the pixel's reset instead of deciding it from the flats")
     p.add_argument("--keep-threshold", action="store_true",
                    help="store the base profile's threshold (the photon-transfer estimate is still reported)")
+    add_overwrite(p, "replace an existing PROFILE (and its report)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from render2spike.commands._common import check_output
     from sensor import SensorProfile
     from sensor.calibration import calibrate, write_report
+    base_path = args.base if Path(args.base).exists() else None
+    check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
     base = SensorProfile.load(args.base)
     drop = 16 if args.raw else 0
     width = args.width or ((base.raw_width or base.width + 16) if args.raw else base.width)

@@ -86,6 +86,30 @@ def test_elssim_follows_the_profile_reset():
     p = crossing_profile(2, 8, 20.0)
     assert isinstance(get_model("elssim", p, "reference"), ELSSimCrossingStep)
     assert isinstance(get_model("elssim", p.replace(reset="interval"), "reference"), ELSSimStep)
+    from sensor import fast
+    if fast.HAVE_NUMBA:
+        assert isinstance(get_model("elssim", p, "fast"), fast.ELSSimCrossingFast)
+        assert isinstance(get_model("elssim", p.replace(reset="interval"), "fast"), fast.ELSSimFast)
+    # the other models have one pixel each and ignore the reset
+    lam = np.full((50, 2, 8), 3.0, np.float32)
+    np.testing.assert_array_equal(sensor.simulate(lam, p, "isi", seed=1),
+                                  sensor.simulate(lam, p.replace(reset="interval"), "isi", seed=1))
+
+
+def test_simulate_cli_reset_option_overrides_the_profile(tmp_path):
+    from render2spike.cli import main
+    prof = crossing_profile(4, 8, 20.0)
+    prof_path = prof.save(tmp_path / "cam.npz")
+    rate = np.full((300, 4, 8), 9.0, np.float32)
+    np.save(tmp_path / "rate.npy", rate)
+    for reset in RESETS:
+        out = tmp_path / f"{reset}.npz"
+        assert main(["simulate", str(tmp_path / "rate.npy"), "--out", str(out), "--profile", str(prof_path),
+                     "--reset", reset, "--quiet", "--seed", "2"]) == 0
+        from sensor.spikefile import read_spikes_with_meta
+        spikes, meta = read_spikes_with_meta(out)
+        np.testing.assert_array_equal(spikes, sensor.simulate(rate, prof.replace(reset=reset), seed=2))
+        assert meta["simulator"]["reset"] == reset
 
 
 # ---------------------------------------------------------------------------------- rate and start-up
@@ -407,3 +431,41 @@ def test_fast_agrees_with_reference_at_vidar_threshold():
         fs, rs = _both(np.full((3000, 20, 25), lam, np.float32), prof, int(lam))
         _rates_agree(fs, rs, f"lam {lam}")
         assert stats.ks_2samp(nth_isis(fs, 5), nth_isis(rs, 5)).pvalue > 1e-4
+
+
+# ------------------------------------------------------------------------------ vidar-default evidence
+def test_vidar_default_uses_the_crossing_reset_and_says_why():
+    p = sensor.SensorProfile.load("vidar-default")
+    assert p.reset == "crossing"
+    assert "crossing" in p.provenance["reset"] and "uhsr" in p.provenance["reset"]
+
+
+def test_excess_lag1_is_zero_for_a_renewal_stream_and_negative_for_the_crossing_reset():
+    from sensor.vidar import lag1_isi_correlation_by_mean_isi
+    k, lam, T = 300, 300 / 14.4, 200  # ~13 ISIs per pixel: the plain estimate is biased by about -1/13
+    out = {}
+    for reset in RESETS:
+        prof = crossing_profile(40, 40, float(k)).replace(reset=reset)
+        s = sensor.simulate(np.full((T, 40, 40), lam, np.float32), prof, "elssim", seed=22)
+        out[reset] = lag1_isi_correlation_by_mean_isi(s, (10.0, 20.0))[0]
+    iv, cr = out["interval"], out["crossing"]
+    assert abs(iv["rho_excess"]) < Z * iv["se_excess"], iv  # renewal: exchangeable ISIs, zero in expectation
+    assert iv["rho"] < -0.03  # while the plain estimate is biased
+    assert cr["rho_excess"] < -Z * cr["se_excess"], cr
+
+
+def test_real_recording_supports_the_crossing_reset():
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real" / "uhsr.npz"
+    if not path.exists():
+        pytest.skip("real recording ../shared/data/real/uhsr.npz not present")
+    from sensor.vidar import reset_evidence
+    rec = np.load(path)["spk"][:, :100, :100]
+    ev = reset_evidence(rec, seed=0, edges=(10.0, 20.0))
+    real, iv, cr = ev["real"][0], ev["interval"][0], ev["crossing"][0]
+    assert real["pixels"] > 300
+    # the real pixels' ISIs are anti-correlated beyond the short-record bias, as the crossing reset's are and the
+    # interval reset's (a renewal process) are not
+    assert real["rho_excess"] < -Z * real["se_excess"]
+    assert cr["rho_excess"] < -Z * cr["se_excess"]
+    assert abs(iv["rho_excess"]) < Z * iv["se_excess"]
