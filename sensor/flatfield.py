@@ -183,7 +183,7 @@ def light_variance(reset, x, k, mu, f, T, rate=None):
 
 
 # ----------------------------------------------------------------------------------------------------- reset
-def test_reset(levels, normal, x_levels, theta, gain, mu, f):
+def decide_reset(levels, normal, x_levels, theta, gain, mu, f):
     """Reset decision from the lag-1 correlation of read-out ISIs.
 
     Interval reset: ISIs are i.i.d. (a discrete renewal process), so the pooled
@@ -548,7 +548,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
         gain, gain_se, X = fit_gain(x, var_x, nf)
         if reset is None and it == 0:
-            rt = test_reset(levels, nf, list(x), theta, gain, mu, f)
+            rt = decide_reset(levels, nf, list(x), theta, gain, mu, f)
             out.update(rt)
             decided = rt["reset"] or "interval"
             if rt["reset"] is None:
