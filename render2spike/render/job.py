@@ -239,9 +239,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             f"{W} intervals (recorded per frame as render_noise_ratio)")
     # noise floor of the change metric: smoothed pilot variance, scaled to the chosen spp
     v_px = pilot_var_px(spp)
-    # (the t = 0 map is stale where objects move, and edges carry most of the render noise: floor at the 99th
-    # percentile so moving edges' noise is not taken for curvature)
-    var_floor = np.maximum(_box(v_px, 2), float(np.quantile(v_px, 0.99)))
+    var_floor = np.maximum(_box(v_px, 2), float(np.median(v_px)))
 
     # ---- adaptive keyframes ---------------------------------------------------------
     acfg = rcfg["adaptive"]
