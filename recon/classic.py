@@ -192,12 +192,22 @@ def tfp_deadtime(spikes, profile, window: int | None = None, center: int | None 
     numpy.ndarray float32 (H, W)
         ``rate_e`` [e-/interval]; saturated pixels get ``4 k``.
     """
-    from sensor.effects import count_threshold, dark_event_probability
     s = _check_spikes(spikes)
-    if tuple(s.shape[1:]) != tuple(profile.shape):
-        raise InputError(f"spikes are {s.shape[1]}x{s.shape[2]} but profile '{profile.name}' is "
+    return deadtime_correct(tfp(s, window, center), profile, correct_hot_pixels)
+
+
+def deadtime_correct(rate, profile, correct_hot_pixels: bool = True) -> np.ndarray:
+    """The inversion step of :func:`tfp_deadtime` on an observed spike rate map.
+
+    ``rate`` float (H, W) [spikes per interval] (TFP, or a smoothed TFP) ->
+    ``rate_e`` float32 (H, W) [e-/interval], per pixel with the profile's
+    ``k``, refractory fraction, dark probability and hot-pixel charge.
+    """
+    from sensor.effects import count_threshold, dark_event_probability
+    r = np.asarray(rate, np.float64)
+    if tuple(r.shape) != tuple(profile.shape):
+        raise InputError(f"spikes are {r.shape[0]}x{r.shape[1]} but profile '{profile.name}' is "
                          f"{profile.height}x{profile.width}", field="profile")
-    r = tfp(s, window, center).astype(np.float64)
     gain = profile.prnu_gain.astype(np.float64)
     k = count_threshold(profile.threshold_e, gain)
     lam = invert_renewal_rate(r, k, profile.refractory_fraction.astype(np.float64),

@@ -4,8 +4,34 @@ from __future__ import annotations
 
 import argparse
 
+EXAMPLES = """presets (--size):
+  tiny   width 16, 2 residual blocks, 2 attention blocks (2 heads) at width 16: 20,587 parameters;
+         trains on a CPU in minutes (the default)
+  paper  width 32, 4 residual blocks, 2 attention blocks (4 heads) at width 32: 96,047 parameters;
+         wider than tiny, NOT the released RSIR layout
+  rsir   the released RSIR network (BIT-Vision/RSIR MainDenoise): 16-channel residual blocks, a 96-wide
+         windowed-attention stage (3 heads, MLP ratio 4), trainable wavelet taps: 254,502 parameters
+         (remaining deviations in docs/recon.md)
+
+normalisation (--normalise):
+  mean   divide input and output by the mean spike rate of the input itself: one model for every light
+         level (default)
+  fixed  one intensity scale estimated from the training data (the network works near that level only)
+
+examples:
+  python -m recon.synth data/dvsynth --sequences 90 --frames 12 --size 96x128 --seed 7
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --out runs/a --steps 2000
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 \\
+      --data rendered:out/disk,out/room:crop=64x64:lux=0.5-500 --size rsir --out runs/b
+  render2spike train --data sdmd:data/SDMD:split=train --init runs/a/model.pt --out runs/ft
+"""
+
 HELP_DATA = ("data spec KIND:PATH[,PATH...][:key=value...], KIND davis | sdmd | rendered; e.g. "
              "davis:/data/DAVIS:crop=64x64:lux=5-50 (see docs/recon.md)")
+
+
+#: the presets of recon.nets.RSIRConfig.preset (kept here so --help does not import torch; a test checks them)
+PRESETS = ("tiny", "paper", "rsir")
 
 
 def register(subparsers) -> None:
@@ -14,18 +40,21 @@ def register(subparsers) -> None:
         description="Train an RSIR-architecture network on spikes simulated from DAVIS-layout or rendered data "
                     "(or on SDMD-style real pairs). Input: 10 TFP windows of 32 intervals (M = 320); target: the "
                     "clean intensity at the window centre in ideal spikes per interval (rate_e / threshold_e).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--data", required=True, help=HELP_DATA)
+        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", required=True, action="append",
+                   help=HELP_DATA + "; repeat to train on several sources at once (same crop)")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],
                    help="spike model the training spikes are simulated with (a model= spec option wins)")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (checkpoints, loss curve)")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
     p.add_argument("--init", metavar="CKPT", help="start from these weights (fine-tuning)")
-    p.add_argument("--steps", type=int, default=2000, help="optimiser steps in total")
-    p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (cosine decay to 10%%)")
-    p.add_argument("--size", default="tiny", choices=["tiny", "paper"],
-                   help="network size preset: tiny (CPU minutes) or paper (RSIR-like widths)")
+    p.add_argument("--steps", type=int, default=2000, help="optimiser steps in total (default 2000)")
+    p.add_argument("--batch-size", type=int, default=4, help="items per step (default 4)")
+    p.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (cosine decay to 10%%; 1e-3)")
+    p.add_argument("--size", choices=list(PRESETS),
+                   help="network preset (default tiny): see 'presets' below; not with --init")
+    p.add_argument("--normalise", choices=["mean", "fixed"],
+                   help="input/output normalisation (default mean; see below); not with --init")
     p.add_argument("--width", type=int, help="channels of the denoiser (overrides the preset)")
     p.add_argument("--res-blocks", type=int, help="residual blocks in the denoiser")
     p.add_argument("--attn-depth", type=int, help="windowed self-attention blocks")
@@ -42,17 +71,26 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+SIZE_FLAGS = ("width", "res_blocks", "attn_depth", "heads", "attn_window")
+
+
 def run(args) -> int:
     import sys
 
     from recon.nets import RSIRConfig
-    from recon.spec import build_dataset, parse_data_spec
+    from recon.spec import build_datasets
     from recon.train import TrainConfig, train
+    from sensor.errors import InputError
 
-    spec = parse_data_spec(args.data)
-    ds = build_dataset(spec, split="train", model=args.noise_model, seed=args.seed)
-    net = RSIRConfig.tiny() if args.size == "tiny" else RSIRConfig()
-    for name in ("width", "res_blocks", "attn_depth", "heads", "attn_window"):
+    given = [f"--{n.replace('_', '-')}" for n in SIZE_FLAGS + ("size", "normalise") if getattr(args, n) is not None]
+    if args.init and given:
+        raise InputError(f"--init takes the network layout from the checkpoint; drop {', '.join(given)}",
+                         field="--init")
+    if args.resume and given:
+        raise InputError(f"--resume continues the stored network; drop {', '.join(given)}", field="--resume")
+    ds = build_datasets(args.data, split="train", model=args.noise_model, seed=args.seed)
+    net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean")
+    for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:
             setattr(net, name, v)
@@ -60,7 +98,8 @@ def run(args) -> int:
                       checkpoint_every=args.checkpoint_every, seed=args.seed, workers=args.workers,
                       max_minutes=args.max_minutes, device=args.device,
                       threads=args.threads)
-    info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv)}
+    info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv),
+            "size": args.size or "tiny"}
     summary = train(ds, args.out, net_config=net, train_config=cfg, resume=args.resume, init_checkpoint=args.init,
                     run_info=info, progress=not args.quiet)
     print(f"trained {summary['steps_done']} steps in {summary['elapsed_s'] / 60:.1f} min on {summary['device']}; "

@@ -122,7 +122,11 @@ def test_sdmd_loader(sdmd_root):
     assert s.windows.shape == (10, 16, 16) and s.spikes.shape == (320, 16, 16)
     ref = np.asarray(Image.open(sdmd_root / "scene1" / "reference.png"), np.float32) / 255.0
     np.testing.assert_allclose(s.target[0], ref * 0.5, rtol=1e-6)
-    np.testing.assert_array_equal(s.maps[0], 0.0)  # no profile given: unknown maps
+    # no profile given: a uniform sensor (mean vidar dark probability, gain 1, no hot pixels), not a random one
+    from recon.datasets import uniform_profile
+    u = uniform_profile(16, 16)
+    assert np.ptp(s.maps[0]) == 0 and s.maps[0, 0, 0] > 0 and np.all(s.maps[1] == 1.0)
+    assert not u.hot_mask.any() and np.all(u.prnu_gain == 1.0) and s.profile.name == u.name
     assert s.meta["lux"] == 3.0
     assert SDMDDataset(sdmd_root, "train").scenes == ["scene0"]
     assert len(SDMDDataset(sdmd_root, "all")) == 2
