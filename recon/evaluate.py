@@ -152,7 +152,12 @@ def normalise(img, white: float) -> np.ndarray:
 
 def psnr_ssim(pred, ref) -> tuple[float, float]:
     """PSNR [dB] and SSIM of ``pred`` against ``ref`` (both linear, same units) after :func:`normalise`."""
-    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    try:
+        from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    except ImportError as exc:
+        from sensor.errors import DependencyError
+        raise DependencyError("PSNR/SSIM need scikit-image (a core dependency of render2spike): "
+                              "pip install 'scikit-image>=0.22'") from exc
     w = white_level(ref, WHITE_PERCENTILE)
     p, r = normalise(pred, w), normalise(ref, w)
     # an exact match would give +inf and poison averages: cap at the PSNR of a 1e-6 RMS error (120 dB)
@@ -172,6 +177,10 @@ def evaluate(dataset, methods: list[Method], out_dir, *, n_examples: int = 4, pr
         raise InputError("the evaluation data hold no items", field="--data")
     per_item, examples = [], []
     n = len(dataset)
+    M = getattr(dataset, "n_windows", 10) * getattr(dataset, "window", 32)
+    for m in methods:  # the network-input length of these data (320 unless windows/window say otherwise)
+        if m.kind == "tfp" and m.arg is None:
+            m.label = f"TFP (M={M})"
     show = set(np.unique(np.linspace(0, n - 1, min(n_examples, n)).round().astype(int)).tolist()) if n_examples else set()
     for i in tqdm(range(n), desc="evaluate", unit="item", disable=not progress):
         s = dataset.sample(i)
