@@ -396,6 +396,27 @@ class DavisDataset(_Base):
 
 
 # --------------------------------------------------------------------------------------------------- rendered
+def expand_frames_folders(paths) -> list[Path]:
+    """Frames folders as given; a dataset root of ``render2spike dataset`` (``manifest.json`` with ``samples``)
+    becomes its finished samples' folders, in spec order."""
+    out = []
+    for p in paths:
+        p = Path(p)
+        man = p / "manifest.json"
+        if not (p / "frames.json").is_file() and man.is_file():
+            try:
+                recs = json.loads(man.read_text()).get("samples", {})
+            except (OSError, json.JSONDecodeError) as exc:
+                raise InputError(f"unreadable dataset manifest ({exc})", path=man) from exc
+            done = sorted((r.get("index", 0), sid) for sid, r in recs.items() if r.get("status") == "done")
+            if not done:
+                raise InputError("the dataset holds no finished samples", path=man)
+            out.extend(p / "samples" / sid for _, sid in done)
+        else:
+            out.append(p)
+    return out
+
+
 class RenderedDataset(_Base):
     """Frames folders from the render stage (``frames.json`` + EXR ``Phi`` frames).
 
@@ -436,6 +457,7 @@ class RenderedDataset(_Base):
         from sensor import read_frames
         from sensor.rates import n_intervals_spanned
         super().__init__(**kw)
+        paths = expand_frames_folders(paths)
         if not paths:
             raise InputError("no frames folders given", field="paths")
         self.seqs = [read_frames(p) for p in paths]
@@ -484,11 +506,11 @@ class RenderedDataset(_Base):
 
     @functools.lru_cache(maxsize=4)
     def _stored(self, si: int):
-        from sensor import read_spikes
+        from sensor.spikefile import read_spikes_with_meta
         folder = self.seqs[si].folder
         p = Path(self.spikes_name)
         p = p if p.is_absolute() else folder / p
-        s, meta = read_spikes(p)
+        s, meta = read_spikes_with_meta(p)
         return s, meta
 
     def sample(self, i: int) -> Sample:

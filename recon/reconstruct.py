@@ -33,13 +33,8 @@ def read_recording(path, *, layout: str | None = None, height: int | None = None
 
     Returns (bool (T, H, W), meta dict). One reader for the project: ``sensor.spikefile``.
     """
-    from sensor import spikefile
-    if hasattr(spikefile, "read_spikes_with_meta"):
-        return spikefile.read_spikes_with_meta(path, layout=layout, height=height, width=width,
-                                               drop_columns=drop_columns)
-    if layout not in (None, "container", "dat"):  # pragma: no cover - until the layout readers are merged
-        raise InputError(f"layout '{layout}' needs the newer sensor.spikefile", field="--layout")
-    return spikefile.read_spikes(path, height or 250, width or 400, drop_columns)
+    from sensor.spikefile import read_spikes_with_meta
+    return read_spikes_with_meta(path, layout=layout, height=height, width=width, drop_columns=drop_columns)
 
 
 def fit_windows(T: int, n_windows: int | None, window: int | None, trained: tuple[int, int]) -> tuple[int, int]:

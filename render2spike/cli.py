@@ -27,6 +27,8 @@ stages and units:
   run        render -> simulate -> preview -> summary, in one command
   calibrate  dark + flat-field spike recordings -> sensor profile
   info       what a spike, frames or profile file holds
+  convert    spike file of any layout -> .dat, container .npz or HDF5
+  realism    a real recording against each spike model: statistics, figure, distances
 
 Run `render2spike COMMAND --help` for each command's options.
 """

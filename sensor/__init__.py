@@ -13,7 +13,8 @@ from .profile import SensorProfile, bundled_profiles
 from .rates import RateSchedule, interval_rates
 from .simulate import SpikeSimulator, simulate
 from .spectral import SpectralCurve
-from .spikefile import read_dat, read_spikes, read_spikes_meta, write_dat, write_spikes
+from .spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts, write_dat,
+                        write_h5, write_spikes)
 from .units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
 
 
@@ -29,7 +30,8 @@ def photoelectron_rate(phi, profile: SensorProfile):
 
 __all__ = [
     "SensorProfile", "SpectralCurve", "SpikeSimulator", "simulate", "photoelectron_rate", "read_dat", "write_dat",
-    "read_spikes", "read_spikes_meta", "write_spikes", "read_frames", "read_frame", "write_frame", "write_frames",
+    "read_spikes", "read_spikes_meta", "read_spikes_with_meta", "spike_layouts", "write_h5",
+    "write_spikes", "read_frames", "read_frame", "write_frame", "write_frames",
     "write_manifest", "FrameSequence", "RateSchedule", "interval_rates", "MODELS", "get_model", "bundled_profiles",
     "INTERVAL_S", "CLOCK_HZ", "TIME_UNIT_S", "Render2SpikeError", "InputError", "ProfileError", "SpikeFileError",
     "FrameFileError", "CalibrationError", "UnknownMethodError", "DependencyError",

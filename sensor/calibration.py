@@ -39,7 +39,8 @@ from .errors import CalibrationError
 from .fileio import provenance, write_json_atomic
 from .profile import SensorProfile
 from .spikefile import read_spikes
-from .theory import fit_hot_pixel, invert_renewal_rate
+from .flatfield import fit_flats, flat_level_stats
+from .theory import fit_hot_pixel
 from .units import per_interval_to_hz
 
 #: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
@@ -59,6 +60,8 @@ class CalibrationReport:
     dark_fraction: np.ndarray | None = None
     flat_levels_e: list = field(default_factory=list)
     prnu_se: np.ndarray | None = None
+    sensitivity: np.ndarray | None = None
+    sensitivity_se: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {"n_dark_recordings": self.n_dark, "n_flat_recordings": self.n_flat,
@@ -71,7 +74,7 @@ def _as_recording(x, height, width, drop_columns, what, i):
     if isinstance(x, np.ndarray):
         s = x
     else:
-        s, _ = read_spikes(x, height=height, width=width, drop_columns=drop_columns)
+        s = read_spikes(x, height=height, width=width, drop_columns=drop_columns)
     s = np.asarray(s)
     if s.ndim != 3 or s.shape[0] < 2:
         raise CalibrationError(f"{what} recording {i} must be (T >= 2, H, W) spikes; got shape {s.shape}",
@@ -87,7 +90,8 @@ def _isi_stats(trains: list[np.ndarray]):
 
 def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_threshold: float = DEFAULT_HOT_THRESHOLD,
               name: str | None = None, height: int | None = None, width: int | None = None, drop_columns: int = 0,
-              min_hot_isis: int = 20, progress=None, progress_bar: bool = False):
+              min_hot_isis: int = 20, reset: str | None = None, flat_lux=None, estimate_threshold: bool = True,
+              progress=None, progress_bar: bool = False):
     """Estimate a :class:`SensorProfile` from dark and flat-field recordings.
 
     Parameters
@@ -108,6 +112,15 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         Layout of .dat inputs (default: the base profile's).
     min_hot_isis : int
         Hot pixels with fewer dark ISIs than this get their mean ISI only (sigma_HP = 0).
+    reset : None, "interval" or "crossing"
+        None (default): decide the pixel's reset from the flats' lag-1 ISI
+        correlation; a name imposes it.
+    flat_lux : list of float, optional
+        Illuminance [lux] of each flat field as measured by the user: gives the
+        sensitivity [photoelectrons per lux per interval], per pixel and on average.
+    estimate_threshold : bool
+        Store the photon-transfer threshold in the profile (default); False keeps
+        the base profile's threshold (the estimate is still reported).
     progress : callable, optional
         ``progress(message)`` called as work advances.
     progress_bar : bool
@@ -179,43 +192,28 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
             hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
         say(f"hot pixels: {hot_idx.size}")
 
-    # ---- flat fields: effective photoelectron rates -> PRNU gain
-    f_ref = base.refractory_fraction.astype(np.float64)
-    lam_levels = []
-    flat_ints = []
-    rates_levels = []
+    # ---- flat fields: reset, effective light per pixel, PRNU, threshold, sensitivity
+    normal = ~hot
+    if flat_lux is not None and len(flat_lux) != len(flat):
+        raise CalibrationError(f"--flat-lux gives {len(flat_lux)} values for {len(flat)} flat recordings; give one "
+                               "illuminance per flat", field="--flat-lux")
+    levels = []
     for i, x in enumerate(flat):
         s = _as_recording(x, H, Wd, drop_columns, "flat", i)
         if s.shape[1:] != shape:
             raise CalibrationError(f"flat recording {i} is {s.shape[1:]}, the dark recordings are {shape}")
-        r = s.mean(axis=0, dtype=np.float64)
-        rates_levels.append(r)
-        # a gain-1 pixel (k = theta) with this pixel's dark probability and refractory time
-        lam_levels.append(invert_renewal_rate(r, base.threshold_e, f_ref, p_normal))
-        flat_ints.append(int(s.shape[0]))
-        say(f"flat {i + 1}/{len(flat)}: mean spike rate {r.mean():.4f} per interval")
-    lam = np.stack(lam_levels)  # (K, H, W)
-    normal = ~hot
-    usable = []
-    for kk in range(lam.shape[0]):
-        mean_rate = rates_levels[kk][normal].mean()
-        ok = mean_rate > 2 * max(median_p, 1e-6) and mean_rate < 0.9
-        usable.append(bool(ok))
-    if sum(usable) == 1:
-        say("note: only one flat-field level is usable; the PRNU slope rests on it alone (record more levels)")
-    if sum(usable) < 1:
-        raise CalibrationError("no flat-field level has a usable signal (mean spike rate must be above twice the "
-                               f"dark rate {2 * median_p:.2e} and below 0.9 spikes per interval); record brighter "
-                               "or dimmer flats", field="--flat")
-    L = np.array([lam[kk][normal].mean() for kk in range(lam.shape[0])])
-    use = np.array(usable)
-    lam_u = np.nan_to_num(lam[use])
-    gain = np.tensordot(L[use], lam_u, axes=(0, 0)) / np.sum(L[use] ** 2)
-    gain = gain / gain[normal].mean()
-    gain = np.where(hot, 1.0, gain)
+        levels.append(flat_level_stats(s))
+        say(f"flat {i + 1}/{len(flat)}: mean spike rate {levels[-1].rate[normal].mean():.4f} per interval")
+    flat_ints = [lv.T for lv in levels]
+    # binomial variance of mu_DC = -ln(1 - p): Var(p) / (1 - p)^2
+    var_mu = np.clip(p_normal, 1e-12, None) / (n_int * np.clip(1 - p_normal, 1e-12, None))
+    fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
+                    median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    gain = np.where(hot, 1.0, fit["gain"])
     gain = np.clip(gain, 0.05, None)
+    use = np.array(fit["level_used"])
 
-    prof = base.replace(
+    changes = dict(
         name=name or f"calibrated-{base.name}",
         dark_rate=mu_dc.astype(np.float32), hot_mask=hot, hot_mu=hot_mu.astype(np.float32),
         hot_sigma=hot_sigma.astype(np.float32), prnu_gain=gain.astype(np.float32),
@@ -224,25 +222,41 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
                          f"({n_int} intervals)",
             "hot_mask/hot_mu/hot_sigma": f"calibrated: hot if dark fraction - median >= {hot_threshold}; "
                                          "mu/sigma fitted to dark ISI mean/variance (exact first-passage model)",
-            "prnu_gain": f"calibrated: slope through the origin of dead-time-corrected flat rates vs level mean, "
-                         f"{int(use.sum())} of {len(flat)} levels used",
+            "prnu_gain": "calibrated: information-weighted rank-1 fit of the exact-inverted flat rates "
+                         f"({fit['reset']} reset), {int(use.sum())} of {len(flat)} levels carry information",
         }),
         meta=dict(base.meta, calibration=provenance(n_dark=len(dark), n_flat=len(flat))),
     )
+    if fit.get("threshold_e") is not None and estimate_threshold:
+        changes["threshold_e"] = float(fit["threshold_e"])
+        changes["provenance"]["threshold_e"] = (f"calibrated: photon transfer from flat ISI variances "
+                                                f"({fit['threshold_e']:.0f} +- {fit['threshold_se']:.0f} e-)")
+    if hasattr(base, "reset"):
+        changes["reset"] = fit["reset"]
+        changes["provenance"]["reset"] = (
+            f"calibrated: lag-1 ISI correlation test, decision {fit['reset']} (confidence "
+            f"{fit['reset_confidence']:.4f})" if reset is None else f"imposed by the user ({reset})")
+    prof = base.replace(**changes)
     numbers = {
         "median_dark_fraction": median_p,
         "mean_dark_rate_hz": float(per_interval_to_hz(mu_dc[normal].mean(), base.interval_s)),
         "hot_pixels": int(hot.sum()),
         "hot_mu_median": float(np.median(hot_mu[hot])) if hot.any() else 0.0,
         "hot_sigma_median": float(np.median(hot_sigma[hot])) if hot.any() else 0.0,
+        "hot_mu_sigma": [[int(r), int(c), float(hot_mu[r, c]), float(hot_sigma[r, c]), int(hot_n_isi[r, c])]
+                         for r, c in zip(*np.nonzero(hot))],
         "hot_min_isis": int(hot_n_isi[hot].min()) if hot.any() else 0,
         "prnu_std": float(gain[normal].std()),
+        "prnu_se_median": float(np.median(fit["gain_se"][normal])),
         "prnu_levels_used": [bool(u) for u in use],
-        "flat_mean_spike_rate": [float(r[normal].mean()) for r in rates_levels],
+        "flat_mean_spike_rate": [float(lv.rate[normal].mean()) for lv in levels],
+        **{k: v for k, v in fit.items() if k not in ("gain", "gain_se", "x", "sensitivity_map",
+                                                       "sensitivity_se_map")},
     }
     report = CalibrationReport(n_dark=len(dark), n_flat=len(flat), dark_intervals=n_int, flat_intervals=flat_ints,
                                hot_threshold=hot_threshold, numbers=numbers, dark_fraction=p_dark,
-                               flat_levels_e=[float(x) for x in L])
+                               flat_levels_e=[float(v) for v in fit["level_light_e"]], prnu_se=fit["gain_se"],
+                               sensitivity=fit.get("sensitivity_map"), sensitivity_se=fit.get("sensitivity_se_map"))
     return prof, report
 
 

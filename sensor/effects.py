@@ -102,3 +102,108 @@ def compute_fire(voltage_e, threshold_e):
     spikes = v >= threshold_e
     v[spikes] = 0.0
     return spikes, v
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The crossing reset (profile.reset == "crossing"): the same effects in continuous time.
+#
+# Time t is measured in intervals (interval m covers [m, m + 1)). Within interval m photoelectrons arrive as a
+# Poisson process of constant rate lambda_m per interval (piecewise constant in time); the pixel of PRNU gain g
+# fires at the k-th photoelectron since its last reset, k = ceil(theta / g) (the same count as Algorithm 2), at
+# that very moment; it is then blind (collects nothing: light, dark or hot-pixel charge) for the refractory
+# fraction f of an interval, and integrates again from zero. Dark events form a Poisson process of mu_DC per
+# interval (Eq. 1 in continuous time); each adds theta, so it fires the pixel at once. Hot pixels get a charge
+# current of N(mu_HP, sigma_HP^2) theta per interval, drawn once per interval and spread evenly over it (Eq. 4 as
+# a current); the charge is kept >= 0 continuously. The read-out reports, per interval, whether the pixel fired at
+# least once in it. See docs/sensor.md, "The crossing reset".
+
+def compute_light_or_dark_crossing(count, k, t_start, t_end, rate_e, dark_rate, rng: np.random.Generator):
+    """First firing of non-hot pixels in ``[t_start, t_end)`` (one piece of constant light), exact times.
+
+    Parameters (1-D arrays of the same length, one entry per pixel)
+    ----------
+    count : float64
+        Photoelectrons collected since the last reset (integer-valued, < k).
+    k : float64
+        Photoelectrons needed to fire, ``ceil(theta / g)``.
+    t_start, t_end : float64
+        Collection window [intervals]; ``t_start`` is after any blind time.
+    rate_e : float64
+        Photoelectron rate [e-/interval] in the window (constant).
+    dark_rate : float64
+        mu_DC [dark events per interval].
+
+    Returns
+    -------
+    (tau, count_after) : float64 arrays
+        ``tau`` the firing time [intervals] (``inf`` when the pixel does not fire
+        in the window); ``count_after`` the count at ``t_end`` when it does not
+        fire (0 where it fires).
+
+    How (exact in distribution): the first dark event comes at ``t_start + E / mu_DC``,
+    ``E ~ Exp(1)``; the light window ends there (or at ``t_end``). Its photoelectron
+    count is ``N ~ Poisson(rate (w - t_start))``; if ``count + N >= k`` the pixel fires
+    at the arrival of photoelectron ``j = k - count``, whose time is ``t_start + (w -
+    t_start) B`` with ``B ~ Beta(j, N - j + 1)`` (the j-th of N uniform arrival times).
+    Otherwise a dark event inside the window fires it. Draws, in this order:
+    exponential, Poisson, beta (each for all pixels of the call).
+    """
+    n = count.size
+    with np.errstate(divide="ignore"):
+        d = np.where(dark_rate > 0, t_start + rng.standard_exponential(n) / np.where(dark_rate > 0, dark_rate, 1.0),
+                     np.inf)
+    w = np.minimum(d, t_end)
+    got = rng.poisson(rate_e * (w - t_start)).astype(np.float64)
+    need = k - count
+    light = count + got >= k
+    a = np.where(light, need, 1.0)
+    b = np.where(light, got - need + 1.0, 1.0)
+    frac = rng.beta(a, b)
+    tau = np.where(light, t_start + (w - t_start) * frac, np.where(d < t_end, d, np.inf))
+    return tau, np.where(np.isfinite(tau), 0.0, count + got)
+
+
+def compute_hot_pixel_crossings(v_e, t_start, t_end, rate_e, current_e, gain, threshold_e, dark_rate,
+                                refractory_fraction, rng: np.random.Generator):
+    """One hot pixel through ``[t_start, t_end)`` under the crossing reset (scalars; exact event times).
+
+    ``v_e`` is the charge [e-] at ``t_start``; ``current_e`` the hot-pixel current
+    [e- per interval] of this interval (``N(mu_HP, sigma_HP^2) theta``, may be
+    negative: the charge then falls, and stays at 0 once it reaches 0). Each
+    photoelectron adds ``gain`` e-, a dark event fires at once. Returns
+    ``(v_e at t_end, blind_until, list of firing times)``; after a firing the
+    pixel holds 0 and is blind until ``tau + f`` (``blind_until`` may lie past
+    ``t_end``: the next interval starts blind). Draws per sub-window: exponential
+    (dark), Poisson (photoelectrons), uniforms (their times).
+    """
+    times = []
+    s = float(t_start)
+    v = float(v_e)
+    blind = s
+    while s < t_end:
+        d = s + rng.standard_exponential() / dark_rate if dark_rate > 0 else np.inf
+        w = min(d, t_end)
+        arr = np.sort(rng.random(rng.poisson(rate_e * (w - s)))) * (w - s) + s
+        tau = np.inf
+        t0 = s
+        for ta in np.append(arr, w):
+            # charge ramps with the current from t0 to ta (kept >= 0): does it reach theta first?
+            if current_e > 0 and v + current_e * (ta - t0) >= threshold_e:
+                tau = t0 + (threshold_e - v) / current_e
+                break
+            v = max(v + current_e * (ta - t0), 0.0)
+            t0 = ta
+            if ta < w:  # a photoelectron
+                v += gain
+                if v >= threshold_e:
+                    tau = ta
+                    break
+        if not np.isfinite(tau) and d < t_end:
+            tau = d
+        if not np.isfinite(tau):
+            break
+        times.append(tau)
+        v = 0.0
+        blind = tau + refractory_fraction
+        s = blind
+    return v, max(blind, float(t_start)), times

@@ -516,6 +516,164 @@ if HAVE_NUMBA:
                         if t >= end:
                             break
 
+    @_jit_inline
+    def _exp_gap(rng, rate):
+        """Exp(rate) waiting time [intervals] (inf when rate <= 0)."""
+        if rate <= 0.0:
+            return np.inf
+        return rng.standard_exponential() / rate
+
+    @_jit
+    def _crossing_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx, gb, gc, fr, mu, gain,
+                       hot_mu, hot_sigma, theta, rem, dark_next, blind, v, out):
+        """``elssim`` with the crossing reset (see ELSSimCrossingFast): continuous firing times, no interval reset.
+
+        Per non-hot pixel: ``rem`` is the light (expected photoelectrons) still to collect before the next firing,
+        counted from the end of the last piece done, the target being a Gamma(k, 1) variate in the rescaled time
+        Lambda(t) = int lambda (the time-rescaling of the photoelectron Poisson process); ``dark_next`` the time
+        [intervals] of the next dark event; ``blind`` the end of the blind time after the last firing.
+        """
+        for p in range(p0, p1):
+            if rem[p] != rem[p]:  # NaN: not drawn yet (the stream starts reset, not blind, at interval m0)
+                rem[p] = _gamma(rng, xs, gb[p], gc[p])
+                dark_next[p] = m0 + _exp_gap(rng, mu[p])
+        for h in hot_idx:
+            rem[h] = np.inf  # hot pixels never take the event path
+            dark_next[h] = np.inf
+        npc = start.size
+        flag = np.zeros(SUB_PIXELS, np.uint8)
+        idx = np.empty(SUB_PIXELS + 1, np.int64)
+        for c0 in range(p0, p1, SUB_PIXELS):
+            c1 = min(c0 + SUB_PIXELS, p1)
+            nt = c1 - c0
+            for i in range(npc):
+                a = m0 + start[i]
+                n = length[i]
+                end = a + n
+                fa = np.float64(a)
+                fend = np.float64(end)
+                lo = lo_[i]
+                nk = nk_[i]
+                # ---- pass 1 (vectorised): subtract the piece's light; flag pixels that may fire or start blind
+                rm = rem[c0:c1]
+                dn_ = dark_next[c0:c1]
+                bl_ = blind[c0:c1]
+                for t in range(nt):
+                    s = 0.0
+                    for r in range(nk):
+                        s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
+                    r_ = rm[t] - s
+                    rm[t] = r_
+                    flag[t] = np.uint8(r_ <= 0.0) | np.uint8(dn_[t] < fend) | np.uint8(bl_[t] > fa)
+                cnt = 0
+                for t in range(nt):
+                    idx[cnt] = t
+                    cnt += flag[t]
+                # ---- pass 2: the flagged pixels, firing by firing, in continuous time
+                for c_ in range(cnt):
+                    p = c0 + idx[c_]
+                    if rem[p] == np.inf:
+                        continue  # hot pixel
+                    s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    rp = rem[p] + s  # undo pass 1: the light still needed, from the piece start
+                    pos = fa
+                    if blind[p] > fa:
+                        pos = blind[p]
+                    dn = dark_next[p]
+                    if dn < pos:  # a dark event while blind is lost: the next one after the blind time
+                        dn = pos + _exp_gap(rng, mu[p])
+                    while True:
+                        if pos >= fend:  # blind past the piece: nothing collected here
+                            break
+                        j0 = np.int64(math.floor(pos - fa))
+                        if j0 > n - 1:
+                            j0 = n - 1
+                        lj = l0 + sl * j0
+                        left0 = lj * (fa + j0 + 1.0 - pos)  # light left in the current interval
+                        nrest = n - j0 - 1
+                        A = l0 + sl * (j0 + 1)
+                        tot = nrest * A + sl * 0.5 * nrest * (nrest - 1)  # light of the whole later intervals
+                        if rp <= left0:
+                            tl = pos + rp / lj
+                        elif nrest > 0 and tot >= rp - left0:
+                            rp2 = rp - left0
+                            x = _crossing(rp2, A, sl, nrest)
+                            cx = (x - 1) * A + sl * 0.5 * (x - 1) * (x - 2)
+                            lx = A + sl * (x - 1)
+                            fx = (rp2 - cx) / lx
+                            if fx > 1.0:
+                                fx = 1.0
+                            tl = fa + j0 + x + fx
+                        else:
+                            tl = np.inf
+                        tau = tl if tl < dn else dn
+                        if tau >= fend:  # no firing in the rest of the piece
+                            rp -= left0 + tot
+                            break
+                        mi = np.int64(math.floor(tau))
+                        if mi >= end:
+                            mi = end - 1
+                        if mi < a:
+                            mi = a
+                        out[mi - m0, p >> 3] |= np.uint8(1 << (p & 7))
+                        rp = _gamma(rng, xs, gb[p], gc[p])  # the next target, counted from the end of the blind time
+                        pos = tau + fr[p]
+                        if dn <= pos:  # fired by it, or it falls in the blind time: lost, draw the next one
+                            dn = pos + _exp_gap(rng, mu[p])
+                        blind[p] = pos
+                    rem[p] = rp
+                    dark_next[p] = dn
+        # ---- hot pixels: event by event in continuous time (photoelectrons by exponential gaps)
+        for i in range(npc):
+            a = m0 + start[i]
+            n = length[i]
+            lo = lo_[i]
+            nk = nk_[i]
+            for h in hot_idx:
+                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, h)
+                for q in range(n):
+                    m = np.float64(a + q)
+                    lam = l0 + sl * q
+                    cur = (hot_mu[h] + hot_sigma[h] * rng.standard_normal()) * theta
+                    sp = blind[h] if blind[h] > m else m
+                    vv = v[h]
+                    while sp < m + 1.0:
+                        d = sp + _exp_gap(rng, mu[h])
+                        wend = d if d < m + 1.0 else m + 1.0
+                        t0 = sp
+                        tau = np.inf
+                        ta = t0 + _exp_gap(rng, lam)
+                        while True:
+                            tn = ta if ta < wend else wend
+                            if cur > 0.0 and vv + cur * (tn - t0) >= theta:
+                                tau = t0 + (theta - vv) / cur
+                                break
+                            vv = vv + cur * (tn - t0)
+                            if vv < 0.0:
+                                vv = 0.0
+                            t0 = tn
+                            if ta < wend:
+                                vv += gain[h]
+                                if vv >= theta:
+                                    tau = ta
+                                    break
+                                ta = ta + _exp_gap(rng, lam)
+                            else:
+                                break
+                        if tau == np.inf and d < m + 1.0:
+                            tau = d
+                        if tau == np.inf:
+                            break
+                        mi = np.int64(math.floor(tau))
+                        if mi > a + q:
+                            mi = a + q
+                        out[mi - m0, h >> 3] |= np.uint8(1 << (h & 7))
+                        vv = 0.0
+                        sp = tau + fr[h]
+                        blind[h] = sp
+                    v[h] = vv
+
+
 if HAVE_NUMBA:
     @_jit
     def _draw_samples(kind, rng, xs, a, n):
@@ -637,6 +795,52 @@ class ELSSimFast(_FastModel):
                      state["rem"], state["dark_next"], state["refr"], state["guard"], state["v"], out)
 
 
+class ELSSimCrossingFast(_FastModel):
+    """``elssim`` with the crossing reset, event-driven (profile.reset == "crossing").
+
+    Why it is the reference's model (:class:`sensor.models.ELSSimCrossingStep`):
+    photoelectrons form a Poisson process of rate lambda(t) (constant within an
+    interval), so in the rescaled time ``Lambda(t) = int lambda`` they are a unit
+    Poisson process and the k-th one after the pixel starts collecting comes when
+    the collected ``Lambda`` passes ``Gamma(k, 1)`` (time rescaling). With the crossing
+    reset there is no end-of-interval reset to undo this: a firing at time tau draws
+    the next target, the pixel collects nothing until ``tau + f`` (blind), and the
+    crossing time inside an interval is ``t = start + (target - collected) / lambda_m``
+    exactly. Dark events are a Poisson process of rate mu_DC: exponential gaps, the
+    pending one kept while it falls after the blind time (memoryless), redrawn from the
+    end of the blind time otherwise. Hot pixels (a current within each interval, kept
+    >= 0) walk event by event: photoelectrons by exponential gaps, the current's
+    crossing solved linearly. Equal in distribution to the reference, never bitwise.
+    No lock-step path: bright light costs one Gamma per firing.
+    """
+
+    name = "elssim"
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        p = profile
+        self.gb, self.gc = _gamma_constants(p)
+        self.fr = p.refractory_fraction.astype(np.float64).reshape(-1)
+        self.mu = p.dark_rate.astype(np.float64).reshape(-1)
+        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
+        self.hot_mu = p.hot_mu.astype(np.float64).reshape(-1)
+        self.hot_sigma = p.hot_sigma.astype(np.float64).reshape(-1)
+        hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
+        self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
+        self.theta = float(p.threshold_e)
+
+    def init_state(self) -> dict:
+        n = self.n_pixels
+        return {"m": 0, "rem": np.full(n, np.nan), "dark_next": np.full(n, np.inf), "blind": np.zeros(n),
+                "v": np.zeros(n)}
+
+    def _tile(self, seg, state, rng, p0, p1, out):
+        ti = p0 // TILE_PIXELS
+        _crossing_tile(rng, _xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0,
+                       p0, p1, self.hot_tiles[ti], self.gb, self.gc, self.fr, self.mu, self.gain, self.hot_mu,
+                       self.hot_sigma, self.theta, state["rem"], state["dark_next"], state["blind"], state["v"], out)
+
+
 class IdealFast(_FastModel):
     """``ideal``, event-driven: whole pieces are added at once while the charge stays below threshold."""
 
@@ -673,6 +877,7 @@ class ISIFast(_FastModel):
 
 if HAVE_NUMBA:
     register_fast("elssim", ELSSimFast)
+    register_fast("elssim", ELSSimCrossingFast, reset="crossing")
     register_fast("ideal", IdealFast)
     register_fast("isi", ISIFast)
 else:  # pragma: no cover

@@ -14,7 +14,10 @@ Registered models (``MODELS``):
 
 * ``ideal``  Algorithm 1: deterministic integrate-and-fire of lambda, reset to
   zero; no shot, dark, hot-pixel, PRNU or refractory effects (quantisation only).
-* ``elssim`` Algorithm 2, with every effect of :mod:`sensor.effects`.
+* ``elssim`` Algorithm 2, with every effect of :mod:`sensor.effects`. It follows the
+  profile's ``reset``: ``interval`` is Algorithm 2 as published (:class:`ELSSimStep`),
+  ``crossing`` the continuous-time pixel that resets at its threshold crossing
+  (:class:`ELSSimCrossingStep`).
 * ``isi``    an inter-spike-interval baseline in the style of RSIR /
   NeuSpike-Net (see :class:`ISIModel`).
 
@@ -28,7 +31,8 @@ from __future__ import annotations
 import numpy as np
 
 from .effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
-                      compute_prnu, compute_shot_noise, count_threshold, dark_event_probability)
+                      compute_hot_pixel_crossings, compute_light_or_dark_crossing, compute_prnu, compute_shot_noise,
+                      count_threshold, dark_event_probability)
 from .errors import UnknownMethodError
 from .profile import SensorProfile
 
@@ -130,6 +134,93 @@ class ELSSimStep(SpikeModel):
         return out
 
 
+class ELSSimCrossingStep(SpikeModel):
+    """``elssim`` with the crossing reset, interval by interval with exact firing times (the reference).
+
+    The model (see :mod:`sensor.effects`, "The crossing reset", and docs/sensor.md):
+    within interval m photoelectrons arrive as a Poisson process of rate lambda_m;
+    a pixel fires at the moment it holds ``k = ceil(theta / g)`` of them, or at a
+    dark event (Poisson process of rate mu_DC), resets to zero at once, is blind
+    for ``f = refractory_s / interval_s`` and goes on integrating; hot pixels add a
+    charge current. Interval m reads 1 when the pixel fired at least once in
+    ``[m, m + 1)``.
+
+    Per interval: the non-hot pixels go through
+    :func:`compute_light_or_dark_crossing` as often as they fire (vectorised), the
+    hot pixels through :func:`compute_hot_pixel_crossings` (one draw of the
+    current per interval, ``normal`` for all hot pixels first). Set
+    ``record_crossings = True`` to collect the exact firing times in
+    ``state["crossings"]`` (a list of ``(flat pixel index, time [intervals])``
+    array pairs), for tests of the continuous-time law.
+    """
+
+    name = "elssim"
+    record_crossings = False
+
+    def __init__(self, profile: SensorProfile):
+        super().__init__(profile)
+        p = profile
+        self.k = count_threshold(p.threshold_e, p.prnu_gain).reshape(-1)
+        self.f = p.refractory_fraction.astype(np.float64).reshape(-1)
+        self.mu = p.dark_rate.astype(np.float64).reshape(-1)
+        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
+        hot = p.hot_mask.reshape(-1)
+        self.hot_index = np.flatnonzero(hot)
+        self.cold_index = np.flatnonzero(~hot)
+        self.hot_mu = p.hot_mu.reshape(-1)[self.hot_index].astype(np.float64)
+        self.hot_sigma = p.hot_sigma.reshape(-1)[self.hot_index].astype(np.float64)
+
+    def init_state(self) -> dict:
+        n = self.profile.height * self.profile.width
+        # count: photoelectrons since reset (non-hot pixels); v: charge [e-] (hot pixels); blind: blind until [t]
+        return {"m": 0, "count": np.zeros(n), "v": np.zeros(n), "blind": np.zeros(n), "crossings": []}
+
+    def run_block(self, lam, state, rng):
+        theta = float(self.profile.threshold_e)
+        B = lam.shape[0]
+        out = np.zeros((B, lam.shape[1] * lam.shape[2]), bool)
+        count, v, blind = state["count"], state["v"], state["blind"]
+        cold = self.cold_index
+        k_c, f_c, mu_c = self.k[cold], self.f[cold], self.mu[cold]
+        for i in range(B):
+            m = float(state["m"] + i)
+            lam_i = lam[i].reshape(-1).astype(np.float64)
+            # ---- non-hot pixels: fire as often as the light / dark events say, vectorised
+            sel = np.arange(cold.size)
+            start = np.maximum(blind[cold], m)
+            while sel.size:
+                sel = sel[start[sel] < m + 1.0]
+                if not sel.size:
+                    break
+                px = cold[sel]
+                tau, after = compute_light_or_dark_crossing(count[px], k_c[sel], start[sel], np.full(sel.size, m + 1.0),
+                                                            lam_i[px], mu_c[sel], rng)
+                count[px] = after
+                fired = np.isfinite(tau)
+                out[i, px[fired]] = True
+                if self.record_crossings and fired.any():
+                    state["crossings"].append((px[fired], tau[fired]))
+                sel = sel[fired]
+                start[sel] = tau[fired] + f_c[sel]
+                blind[cold[sel]] = start[sel]
+            # ---- hot pixels: exact event-by-event walk
+            if self.hot_index.size:
+                cur = rng.normal(self.hot_mu, self.hot_sigma) * theta
+                for j, h in enumerate(self.hot_index):
+                    s0 = max(blind[h], m)
+                    if s0 >= m + 1.0:
+                        continue
+                    v[h], b, times = compute_hot_pixel_crossings(v[h], s0, m + 1.0, lam_i[h], cur[j], self.gain[h],
+                                                                 theta, self.mu[h], self.f[h], rng)
+                    if times:
+                        out[i, h] = True
+                        blind[h] = b
+                        if self.record_crossings:
+                            state["crossings"].append((np.full(len(times), h), np.asarray(times)))
+        state["m"] += B
+        return out.reshape(lam.shape)
+
+
 class ISIModel(SpikeModel):
     """Inter-spike-interval baseline in the style of RSIR / NeuSpike-Net.
 
@@ -196,12 +287,14 @@ class ISIModel(SpikeModel):
 
 
 _REFERENCE = {"ideal": IdealModel, "elssim": ELSSimStep, "isi": ISIModel}
-_FAST: dict[str, type] = {}
+#: models whose pixel follows the profile's ``reset``: the class per reset (the ``_REFERENCE`` one is "interval")
+_REFERENCE_BY_RESET = {("elssim", "crossing"): ELSSimCrossingStep}
+_FAST: dict = {}
 
 
-def register_fast(name: str, cls: type) -> None:
-    """Register a fast (event-driven) implementation of model ``name``."""
-    _FAST[name] = cls
+def register_fast(name: str, cls: type, reset: str = "interval") -> None:
+    """Register a fast (event-driven) implementation of model ``name`` for profiles with ``reset``."""
+    _FAST[(name, reset)] = cls
 
 
 MODELS = tuple(_REFERENCE)
@@ -209,16 +302,22 @@ IMPLEMENTATIONS = ("fast", "reference")
 
 
 def get_model(name: str, profile: SensorProfile, implementation: str = "fast") -> SpikeModel:
-    """Instantiate model ``name`` with ``implementation`` ('fast' falls back to 'reference' when none exists)."""
+    """Instantiate model ``name`` with ``implementation`` ('fast' falls back to 'reference' when none exists).
+
+    ``elssim`` follows ``profile.reset`` (``interval``: Algorithm 2; ``crossing``: the
+    continuous-time pixel); ``ideal`` and ``isi`` have one pixel each and ignore it.
+    """
     if name not in _REFERENCE:
         raise UnknownMethodError("spike model", name, _REFERENCE)
     if implementation not in IMPLEMENTATIONS:
         raise UnknownMethodError("implementation", implementation, IMPLEMENTATIONS)
+    reset = getattr(profile, "reset", "interval")
+    key = (name, reset) if (name, reset) in _REFERENCE_BY_RESET else (name, "interval")
     if implementation == "fast":
         _load_fast()
-        if name in _FAST:
-            return _FAST[name](profile)
-    return _REFERENCE[name](profile)
+        if key in _FAST:
+            return _FAST[key](profile)
+    return _REFERENCE_BY_RESET.get(key, _REFERENCE[name])(profile)
 
 
 def _load_fast() -> None:

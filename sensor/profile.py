@@ -6,12 +6,13 @@ and its per-pixel fixed-pattern maps. The maps are drawn once (by
 stored; every simulation reads them from the profile, so two simulations of the
 same profile see the same sensor.
 
-File format (``.npz``, version 1)
+File format (``.npz``, version 2)
 ---------------------------------
 A numpy ``.npz`` archive (zip, compressed) holding
 
-* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields, the QE curve,
-  the provenance of every value and the format version;
+* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields (version 2
+  adds ``reset``; a version-1 file, which has none, loads as ``"interval"``),
+  the QE curve, the provenance of every value and the format version;
 * the maps, each float32 (H, W) unless noted:
   ``dark_rate`` (mu_DC, expected dark events per interval), ``hot_mask`` (bool),
   ``hot_mu`` and ``hot_sigma`` (hot-pixel charge per interval in units of the
@@ -36,7 +37,13 @@ from .spectral import SpectralCurve
 from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, per_interval_to_hz, seconds_to_intervals
 
 PROFILE_FORMAT = "render2spike-sensor-profile"
-PROFILE_VERSION = 1
+PROFILE_VERSION = 2
+#: how a pixel resets (see ``docs/sensor.md``, "The crossing reset"):
+#: ``interval`` = Algorithm 2 as published (the charge is tested and reset at the end of each interval, the
+#: excess is discarded); ``crossing`` = continuous time (the pixel fires the moment its charge reaches theta,
+#: resets then, is blind for ``refractory_s`` and keeps integrating; the read-out reports at most one spike per
+#: interval)
+RESETS = ("interval", "crossing")
 DATA_DIR = Path(__file__).with_name("data")
 MAP_NAMES = ("dark_rate", "hot_mask", "hot_mu", "hot_sigma", "prnu_gain", "refractory_s")
 MAP_UNITS = {
@@ -85,6 +92,11 @@ class SensorProfile:
         Width of raw .dat captures (416 for Vidar; the extra columns are dropped).
     qe : SpectralCurve
         Quantum efficiency vs wavelength [nm], used by the render stage.
+    reset : str
+        How the pixel resets, one of :data:`RESETS`: ``"interval"`` (Algorithm 2
+        as published: test and reset at the end of each interval, excess charge
+        discarded) or ``"crossing"`` (reset at the moment the charge reaches the
+        threshold, integration continues; at most one spike read out per interval).
 
     Maps (H, W)
     -----------
@@ -110,6 +122,7 @@ class SensorProfile:
     fill_factor: float = 0.5
     raw_width: int | None = None
     qe: SpectralCurve = field(default_factory=generic_cmos_qe)
+    reset: str = "interval"
     provenance: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
 
@@ -132,6 +145,8 @@ class SensorProfile:
             raise ProfileError(msg, path=path, field=fieldname)
         if self.height < 1 or self.width < 1:
             bad("height/width", f"resolution must be positive, got {self.height}x{self.width}")
+        if self.reset not in RESETS:
+            bad("reset", f"unknown reset '{self.reset}'; valid choices: {', '.join(RESETS)}")
         if not self.threshold_e > 0:
             bad("threshold_e", f"threshold must be > 0 electrons, got {self.threshold_e}")
         if not self.interval_s > 0:
@@ -181,7 +196,7 @@ class SensorProfile:
                   refractory_s: float = TIME_UNIT_S, seed: int = 0, name: str | None = None,
                   interval_s: float = INTERVAL_S, clock_hz: float = CLOCK_HZ, pixel_pitch_m: float = 20e-6,
                   fill_factor: float = 0.5, raw_width: int | None = None, qe: SpectralCurve | None = None,
-                  provenance: dict | None = None) -> "SensorProfile":
+                  reset: str = "interval", provenance: dict | None = None) -> "SensorProfile":
         """Draw a sensor instance with chosen statistics.
 
         Parameters
@@ -208,6 +223,8 @@ class SensorProfile:
             Refractory time [s], the same for all pixels (default dt = 2/CLK).
         seed : int
             Seed of the fixed-pattern draw (one ``numpy.random.Generator``).
+        reset : str
+            ``"interval"`` (Algorithm 2, default) or ``"crossing"`` (see :data:`RESETS`).
         """
         h, w = int(height), int(width)
         ss = np.random.SeedSequence(int(seed))
@@ -246,7 +263,7 @@ class SensorProfile:
                    dark_rate=dark, hot_mask=mask.reshape(h, w), hot_mu=hmu.reshape(h, w),
                    hot_sigma=hsig.reshape(h, w), prnu_gain=gain, refractory_s=np.full((h, w), refractory_s),
                    interval_s=interval_s, clock_hz=clock_hz, pixel_pitch_m=pixel_pitch_m, fill_factor=fill_factor,
-                   raw_width=raw_width, qe=qe or generic_cmos_qe(), provenance=prov)
+                   raw_width=raw_width, qe=qe or generic_cmos_qe(), reset=reset, provenance=prov)
 
     def window(self, top: int, left: int, height: int, width: int, name: str | None = None) -> "SensorProfile":
         """The same sensor restricted to a rectangular window of pixels (for small experiments)."""
@@ -276,6 +293,7 @@ class SensorProfile:
             "pixel_pitch_m": self.pixel_pitch_m,
             "fill_factor": self.fill_factor,
             "raw_width": self.raw_width,
+            "reset": self.reset,
             "qe": self.qe.to_dict(),
             "map_units": MAP_UNITS,
             "provenance": self.provenance,
@@ -329,6 +347,7 @@ class SensorProfile:
                        threshold_e=meta["threshold_e"], interval_s=meta["interval_s"], clock_hz=meta["clock_hz"],
                        pixel_pitch_m=meta["pixel_pitch_m"], fill_factor=meta["fill_factor"],
                        raw_width=meta.get("raw_width"), qe=SpectralCurve.from_dict(meta["qe"]),
+                       reset=meta.get("reset", "interval"),  # version 1 files have no reset: Algorithm 2
                        provenance=meta.get("provenance", {}), meta=meta.get("meta", {}), **maps)
         except KeyError as exc:
             raise ProfileError("missing required field", path=p, field=str(exc.args[0])) from exc
@@ -345,6 +364,7 @@ class SensorProfile:
             "interval_s": self.interval_s,
             "clock_hz": self.clock_hz,
             "threshold_e": self.threshold_e,
+            "reset": self.reset,
             "pixel_pitch_um": self.pixel_pitch_m * 1e6,
             "fill_factor": self.fill_factor,
             "dark_rate_mean_per_interval": float(self.dark_rate[~hm].mean()) if (~hm).any() else 0.0,

@@ -325,3 +325,192 @@ def fit_hot_pixel(mean_isi_obs: float, var_isi_obs: float, p_dark: float = 0.0):
     sol = least_squares(resid, x0=[np.log(mu0), np.log(s0)], bounds=([np.log(1e-4), np.log(1e-4)], [np.log(5.0), np.log(5.0)]),
                         x_scale=[0.1, 0.5], diff_step=1e-3)
     return float(np.exp(sol.x[0])), float(np.exp(sol.x[1]))
+
+
+# ------------------------------------------------------------------------------------------------------------
+# The crossing reset (profile.reset == "crossing"; docs/sensor.md, "The crossing reset")
+#
+# Continuous time t in intervals. Under constant light lam [photoelectrons/interval] a non-hot pixel fires at the
+# k-th photoelectron after the end of its blind time f, or at the first dark event (rate mu per interval) after it;
+# each firing resets it. So the firing times form a renewal process with inter-firing time
+#
+#     X = f + min(G, E),   G ~ Gamma(k, rate lam),   E ~ Exp(mu),
+#     S_X(x) = P(X > x) = 1 (x < f),   Q(k, lam (x - f)) exp(-mu (x - f)) (x >= f).
+#
+# The read-out reports interval m when at least one firing falls in [m, m + 1). For a stationary renewal process the
+# first firing after any fixed time comes after the forward recurrence time, P(B > 1) = (1/E X) int_1^inf S_X, so the
+# read-out rate is  R = 1 - P(B > 1) = (1/E X) int_0^1 S_X(x) dx = E[min(X, 1)] / E[X]  (<= 1, and R -> 1/E[X] when
+# firings never share an interval).
+#
+# With f = 0 and no dark events the count of photoelectrons is a Poisson process and the pixel fires each time it
+# passes a multiple of k, so the phase r = (photoelectrons since the stream started) mod k, sampled at interval
+# boundaries, is a Markov chain on {0..k-1}: r' = (r + D) mod k, D ~ Poisson(lam_m), and interval m reads 1 iff
+# r + D >= k. Every read-out statistic (the exact start-up, time-varying input, read-out ISI law, its lag-1
+# correlation, window-count Fano factors) follows by linear algebra on that chain (the functions below).
+
+def crossing_inter_firing_mean(lam, k, f=0.0, mu=0.0) -> float:
+    """E[X] [intervals] of the continuous-time inter-firing time (scalars): f + E[min(Gamma(k, lam), Exp(mu))].
+
+    E[min(G, E)] = (1 - (lam / (lam + mu))^k) / mu  (the probability that the dark event comes first over mu),
+    k / lam without dark events.
+    """
+    lam, k, f, mu = float(lam), float(k), float(f), float(mu)
+    if mu <= 0:
+        return f + (k / lam if lam > 0 else np.inf)
+    return f + (1.0 - (lam / (lam + mu)) ** k) / mu
+
+
+def crossing_firing_survival(x, lam, k, f=0.0, mu=0.0):
+    """S_X(x) = P(X > x) of the continuous-time inter-firing time (x [intervals], arrays broadcast)."""
+    x = np.asarray(x, np.float64)
+    y = np.clip(x - f, 0.0, None)
+    s = special.gammaincc(float(k), lam * y) * np.exp(-mu * y) if lam > 0 else np.exp(-mu * y)
+    return np.where(x < f, 1.0, s)
+
+
+def crossing_rates(lam, k, f=0.0, mu=0.0):
+    """(continuous firing rate, read-out spike rate) [per interval] of a stationary crossing-reset pixel (scalars).
+
+    Continuous: ``1 / E[X]``. Read-out: ``E[min(X, 1)] / E[X]`` with
+    ``E[min(X, 1)] = int_0^1 S_X`` (renewal theory, see the section comment);
+    closed form without dark events, ``E[min(G, a)] = (k/lam) P(Gamma(k+1) <= lam a) + a Q(k, lam a)``,
+    ``a = 1 - f``; adaptive quadrature otherwise.
+    """
+    lam, k, f, mu = float(lam), float(k), float(f), float(mu)
+    ex = crossing_inter_firing_mean(lam, k, f, mu)
+    a = max(1.0 - f, 0.0)
+    if mu <= 0:
+        emin = (k / lam) * special.gammainc(k + 1.0, lam * a) + a * special.gammaincc(k, lam * a) if lam > 0 else a
+    else:
+        from scipy.integrate import quad
+        emin = quad(lambda y: float(crossing_firing_survival(y + f, lam, k, f, mu)), 0.0, a, epsabs=1e-13,
+                    epsrel=1e-11, limit=200)[0]
+    return 1.0 / ex, (min(f, 1.0) + emin) / ex
+
+
+def _poisson_mod_k(lam: float, k: int):
+    """P(D = d) of D ~ Poisson(lam) folded by (quotient, remainder): returns (pmf (d_max+1,), d_max)."""
+    d_max = int(np.ceil(lam + 12.0 * np.sqrt(lam + 1.0) + 12.0))
+    d = np.arange(d_max + 1)
+    from scipy import stats
+    return stats.poisson.pmf(d, lam), d_max
+
+
+def crossing_phase_chain(lam: float, k: int):
+    """Transition matrices (A0, A1), each (k, k), of the phase chain (f = 0, no dark events).
+
+    ``A0[r, r']``: the interval reads 0 and the phase goes r -> r'; ``A1``: it reads 1.
+    ``A0 + A1`` is stochastic (doubly stochastic: the stationary phase is uniform).
+    """
+    k = int(k)
+    pmf, d_max = _poisson_mod_k(float(lam), k)
+    A0 = np.zeros((k, k))
+    A1 = np.zeros((k, k))
+    for r in range(k):
+        tot = r + np.arange(d_max + 1)
+        dest = tot % k
+        fire = tot >= k
+        np.add.at(A0[r], dest[~fire], pmf[~fire])
+        np.add.at(A1[r], dest[fire], pmf[fire])
+    return A0, A1
+
+
+def crossing_readout_probability(lam_m, k: int) -> np.ndarray:
+    """P(interval m reads 1), m = 0..T-1, for any per-interval light ``lam_m`` (T,) (f = 0, no dark; exact).
+
+    The stream starts reset (phase 0). Works for time-varying (keyframed) input:
+    the phase distribution is propagated through each interval's chain.
+    """
+    k = int(k)
+    lam_m = np.asarray(lam_m, np.float64)
+    out = np.empty(lam_m.size)
+    q = np.zeros(k)
+    q[0] = 1.0
+    cache = {}
+    for m, lam in enumerate(lam_m):
+        key = float(lam)
+        if key not in cache:
+            cache[key] = crossing_phase_chain(key, k)
+        A0, A1 = cache[key]
+        q1 = q @ A1
+        out[m] = q1.sum()
+        q = q @ A0 + q1
+    return out
+
+
+def crossing_readout_isi_stats(lam: float, k: int):
+    """Read-out ISI law of a stationary crossing-reset pixel (f = 0, no dark): (mean, variance, lag-1 correlation).
+
+    After a read-out spike the phase has law ``nu ∝ pi A1`` (pi uniform); the next
+    spike comes n intervals later with probability ``nu A0^(n-1) A1 1``. With
+    ``M = (I - A0)^-1``: ``E[N] = nu M^2 A1 1``, ``E[N^2] = nu (I + A0) M^3 A1 1``, and
+    consecutive ISIs share the phase between them, ``E[N1 N2] = nu (M^2 A1)^2 1``
+    (nu is stationary for the spike-embedded chain). The continuous-time ISIs are
+    independent; the negative correlation is the read-out's: a firing late in its
+    interval makes this read-out ISI long and the next one short.
+    """
+    A0, A1 = crossing_phase_chain(lam, k)
+    kk = A0.shape[0]
+    nu = np.full(kk, 1.0 / kk) @ A1
+    nu /= nu.sum()
+    I = np.eye(kk)
+    M = np.linalg.inv(I - A0)
+    G = M @ M @ A1  # sum_n n A0^(n-1) A1
+    one = np.ones(kk)
+    m1 = nu @ G @ one
+    m2 = nu @ (I + A0) @ M @ M @ M @ A1 @ one
+    m12 = nu @ G @ G @ one
+    var = m2 - m1 * m1
+    return float(m1), float(var), float((m12 - m1 * m1) / var)
+
+
+def crossing_readout_isi_pmf(n, lam: float, k: int, after_spikes: int | None = None) -> np.ndarray:
+    """P(read-out ISI = n), n >= 1 (f = 0, no dark): ``nu A0^(n-1) A1 1``.
+
+    ``after_spikes=None``: the stationary ISI (``nu ∝ pi A1``). An integer j: the
+    ISI between read-out spikes j and j + 1 of a stream that starts reset
+    (phase 0); the phase after spike j has law ``delta_0 (M A1)^j``, with
+    ``M = (I - A0)^-1`` (the spike-embedded chain). One such ISI per pixel gives
+    independent samples of an exactly known law (consecutive ISIs are not
+    independent under the crossing reset).
+    """
+    n = np.asarray(n, np.int64)
+    A0, A1 = crossing_phase_chain(lam, k)
+    kk = A0.shape[0]
+    if after_spikes is None:
+        nu = np.full(kk, 1.0 / kk) @ A1
+    else:
+        P = np.linalg.solve(np.eye(kk) - A0, A1)
+        nu = np.zeros(kk)
+        nu[0] = 1.0
+        for _ in range(int(after_spikes)):
+            nu = nu @ P
+    nu = nu / nu.sum()
+    out = np.zeros(int(n.max()) + 1)
+    a1 = A1.sum(axis=1)
+    v = nu.copy()
+    for j in range(1, out.size):
+        out[j] = v @ a1
+        v = v @ A0
+    return out[n]
+
+
+def crossing_window_count_moments(lam: float, k: int, window: int):
+    """(mean, variance) of the read-out spike count in ``window`` consecutive intervals (stationary; f = 0, no dark).
+
+    Generating function ``E[z^C] = pi (A0 + z A1)^W 1``: its first two derivatives at
+    z = 1 by the recursion ``u' <- u' A + u A1``, ``u'' <- u'' A + 2 u' A1``. The
+    Fano factor is ``variance / mean``.
+    """
+    A0, A1 = crossing_phase_chain(lam, k)
+    A = A0 + A1
+    kk = A.shape[0]
+    u = np.full(kk, 1.0 / kk)
+    d1 = np.zeros(kk)
+    d2 = np.zeros(kk)
+    for _ in range(int(window)):
+        d2 = d2 @ A + 2.0 * d1 @ A1
+        d1 = d1 @ A + u @ A1
+        u = u @ A
+    m1, f2 = d1.sum(), d2.sum()
+    return float(m1), float(f2 + m1 - m1 * m1)

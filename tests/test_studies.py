@@ -1,10 +1,15 @@
-"""Lux sweep study: linear rescaling of frames, job reproducibility, and the same rows on Dask as sequentially."""
+"""Lux sweep study: linear rescaling of frames, pre-roll, seed spread, noise-free row, Dask = sequential."""
+
+import json
 
 import numpy as np
 import pytest
 
 import sensor
 from render2spike.studies import plan_lux_sweep, run_job, run_jobs, summarise, write_study
+from render2spike.studies.common import (NOISE_FREE_LABEL, parse_model_spec, profile_for, seed_spread,
+                                         simulate_clip)
+from tests.conftest import Z
 
 
 @pytest.fixture(scope="module")
@@ -27,12 +32,43 @@ def test_signal_scales_linearly_with_lux(frames):
     np.testing.assert_allclose([r["signal_e_per_interval"] for r in b],
                                [10 * r["signal_e_per_interval"] for r in a], rtol=1e-5)
     assert a[0]["signal_e_per_interval"] == pytest.approx(900 * 0.3 / 100, rel=0.1)
+    # the noise-free window average is scored once per (lux, centre, seed) of the first model
+    assert sum(r["method"] == NOISE_FREE_LABEL for r in a) == 2
 
 
-def test_more_light_reconstructs_better(frames):
-    jobs = plan_lux_sweep(frames, [2.0, 200.0], ["elssim"], [0], window=128, n_centers=2, methods=["tfp-dt"])
-    s = summarise(run_jobs(jobs, progress=False))
+def test_preroll_removes_the_phase_lock_of_the_ideal_model():
+    """From zero charge every ideal pixel of one rate fires in step: TFP over the first window is floor(W lam/theta).
+
+    After the pre-roll the phases are spread over the threshold and the mean count is W lam / theta; the count of
+    a pixel is floor or ceil of it, so the mean of N pixels has sd <= 0.5 / sqrt(N) if phases were independent."""
+    prof = profile_for("vidar-default", (20, 30), "ideal")
+    theta = prof.threshold_e
+    lam = 2.5 * theta / 64  # 2.5 spikes per 64-interval window
+    rate = np.full((2, 20, 30), lam, np.float32)
+    t = np.array([0.0, 64 * prof.interval_s])
+    cold = simulate_clip(rate, t, prof, "ideal", 0, preroll=0)[:64].sum(0)
+    warm = simulate_clip(rate, t, prof, "ideal", 0, preroll=2000)[:64].sum(0)
+    assert cold.mean() == 2.0  # phase-locked: 0.8x the truth
+    tol = Z * 0.5 / np.sqrt(cold.size)
+    assert abs(warm.mean() - 2.5) < tol
+    assert set(np.unique(warm)) <= {2, 3}
+
+
+def test_more_light_reconstructs_better_and_spread_is_over_seeds(frames, tmp_path):
+    jobs = plan_lux_sweep(frames, [2.0, 200.0], ["elssim"], [0, 1, 2], window=128, n_centers=2,
+                          methods=["tfp-dt"])
+    rows = run_jobs(jobs, progress=False)
+    s = [r for r in summarise(rows) if r["model"] == "elssim"]
     assert s[1]["psnr_db"] > s[0]["psnr_db"] + 5
+    # error bar = sd over seeds of the per-seed means (centres averaged inside a seed)
+    sel = [r for r in rows if r["lux"] == 2.0 and r["model"] == "elssim"]
+    per_seed = [np.mean([r["psnr_db"] for r in sel if r["seed"] == k]) for k in (0, 1, 2)]
+    assert s[0]["psnr_sd"] == pytest.approx(np.std(per_seed, ddof=1)) and s[0]["n_seeds"] == 3
+    assert s[0]["few_light_spikes"] and not s[1]["few_light_spikes"]
+    write_study(tmp_path, rows, jobs, "test")
+    md = (tmp_path / "summary.md").read_text()
+    assert "| noise-free |" in md and "Warnings" in md and "±" in md and "e-/int" in md
+    assert (tmp_path / "ssim_vs_lux.png").stat().st_size > 1000
 
 
 def test_dask_gives_the_same_rows_as_sequential(frames, tmp_path):
@@ -42,10 +78,16 @@ def test_dask_gives_the_same_rows_as_sequential(frames, tmp_path):
     seq = run_jobs(jobs, progress=False)
     with distributed.Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
         par = run_jobs(jobs, client, progress=False)
-    strip = lambda rows: [{k: v for k, v in r.items() if k != "job_seconds"} for r in rows]  # noqa: E731
+    strip = lambda rows: json.dumps([{k: v for k, v in r.items() if k != "job_seconds"} for r in rows])  # noqa: E731
     assert strip(par) == strip(seq)
     paths = write_study(tmp_path, seq, jobs, "test")
-    assert "| elssim |" in (tmp_path / "summary.md").read_text() and len(paths) == 5
+    assert "| elssim |" in (tmp_path / "summary.md").read_text() and len(paths) == 6
+
+
+def test_seed_spread_groups():
+    rows = [{"g": "a", "seed": s, "v": v} for s, v in ((0, 1.0), (0, 3.0), (1, 4.0))]
+    (r,) = seed_spread(rows, ("g",), "v")
+    assert r["mean"] == pytest.approx(3.0) and r["sd"] == pytest.approx(np.std([2.0, 4.0], ddof=1))
 
 
 def test_study_errors_are_clear(frames):
@@ -55,3 +97,6 @@ def test_study_errors_are_clear(frames):
         plan_lux_sweep(frames, [1.0], ["davis"], [0], window=64)
     with pytest.raises(sensor.InputError, match="lux"):
         plan_lux_sweep(frames, [-1.0], ["elssim"], [0], window=64)
+    with pytest.raises(sensor.UnknownMethodError):
+        plan_lux_sweep(frames, [1.0], ["elssim"], [0], window=64, methods=["nope"])
+    assert parse_model_spec("elssim:crossing") == ("elssim", "crossing")

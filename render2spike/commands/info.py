@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-HELP = "describe a spike file (.npz/.dat), a frames folder or a sensor profile"
+HELP = "describe a spike file (.npz/.dat/.h5), a frames folder or a sensor profile"
 
 
 def register(sub) -> None:
@@ -64,11 +64,25 @@ def describe(path, height=250, width=400, raw=False) -> dict:
             return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}
         if fmt == "render2spike-spikes":
             from sensor.spikefile import read_spikes
-            s, _ = read_spikes(p)
+            s = read_spikes(p, layout="container")
             return {"kind": "spike container", **{k: v for k, v in meta.items() if k != "format"},
                     "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
-        return {"kind": "npz arrays", "arrays": shapes}
-    raise InputError("unknown file type (expected .npz, .dat, a frames folder or a bundled profile name)", path=p)
+        from sensor.errors import SpikeFileError
+        from sensor.spikefile import LAYOUTS, read_spikes, detect_layout
+        try:
+            layout = detect_layout(p)
+        except SpikeFileError:
+            return {"kind": "npz arrays", "arrays": shapes}
+        s = read_spikes(p, layout=layout)
+        return {"kind": f"spike file, layout '{layout}'", "layout": LAYOUTS[layout], "arrays": shapes,
+                "intervals": s.shape[0], "height": s.shape[1], "width": s.shape[2],
+                "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
+    if p.suffix.lower() in (".h5", ".hdf5"):
+        from sensor.spikefile import read_spikes_with_meta
+        s, meta = read_spikes_with_meta(p, layout="h5")
+        return {"kind": "HDF5 spike file", **{k: v for k, v in meta.items() if k not in ("provenance",)},
+                "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
+    raise InputError("unknown file type (expected .npz, .dat, .h5, a frames folder or a bundled profile name)", path=p)
 
 
 def run(args) -> int:

@@ -67,13 +67,64 @@ def fit_profile(profile, shape, say=print):
     return profile.window(top, left, H, W)
 
 
+class _NpzMember:
+    """One array of an .npz, read in row chunks straight from the zip stream (stored or deflated).
+
+    Only the header is parsed up front; :meth:`rows` decodes the next rows, so memory stays at
+    one chunk whatever the array's length (np.load would decompress the whole member).
+    """
+
+    def __init__(self, path: Path, name: str):
+        import zipfile
+        self.zf = zipfile.ZipFile(path)
+        self.fh = self.zf.open(name + ".npy")
+        version = np.lib.format.read_magic(self.fh)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+            np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(self.fh)
+        if fortran and len(shape) > 1:
+            raise ValueError("Fortran-ordered arrays are not supported; save rate_e C-ordered")
+        if dtype.hasobject:
+            raise ValueError("object arrays are not supported")
+        self.shape, self.dtype = tuple(shape), dtype
+        self.row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
+        self.pos = 0
+
+    def rows(self, i: int, j: int) -> np.ndarray:
+        if i != self.pos:
+            raise ValueError("rows must be read in order")
+        n = j - i
+        buf = bytearray(n * self.row_bytes)
+        view = memoryview(buf)
+        got = 0
+        while got < len(buf):
+            k = self.fh.readinto(view[got:])
+            if not k:
+                raise ValueError(f"truncated array: rows {i}..{j - 1} of {self.shape[0]}")
+            got += k
+        self.pos = j
+        return np.frombuffer(buf, self.dtype).reshape((n,) + self.shape[1:])
+
+    def close(self):
+        self.fh.close()
+        self.zf.close()
+
+
 class RateSource:
-    """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT."""
+    """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT.
+
+    Nothing is read whole: an ``.npy`` is memory-mapped, an ``.npz`` member is decoded
+    chunk by chunk from the zip stream, and a frames folder's EXR files are decoded by a
+    reader thread one chunk ahead of the simulation (:meth:`chunks`), so decoding overlaps
+    the kernel (which releases the GIL). Memory is a few chunks, flat in duration.
+    """
 
     def __init__(self, path, profile_for_phi=None):
         from sensor.errors import InputError
         self.path = Path(path)
         self.kind = None
+        self._member = None
+        self.rate = None
         if self.path.is_dir():
             from sensor.frames import read_frames
             self.frames = read_frames(self.path)
@@ -90,32 +141,33 @@ class RateSource:
                     if "rate_e" not in z:
                         raise InputError(f"no array 'rate_e' (has: {', '.join(z.files)})", path=self.path,
                                          field="rate_e")
-                    self.rate = z["rate_e"].astype(np.float32)
                     self.t_s = z["t_s"].astype(np.float64) if "t_s" in z else None
-            except (OSError, ValueError) as exc:
+                self._member = _NpzMember(self.path, "rate_e")
+                shape = self._member.shape
+            except InputError:
+                raise
+            except (OSError, ValueError, KeyError) as exc:
                 raise InputError(f"not a readable .npz ({exc})", path=self.path) from exc
             self.kind = "array"
         elif self.path.suffix == ".npy":
             try:
-                self.rate = np.load(self.path, allow_pickle=False).astype(np.float32)
+                self.rate = np.load(self.path, allow_pickle=False, mmap_mode="r")
             except (OSError, ValueError) as exc:
                 raise InputError(f"not a readable .npy ({exc})", path=self.path) from exc
+            shape = self.rate.shape
             self.t_s = None
             self.kind = "array"
         else:
-            if not self.path.exists():
-                raise InputError("does not exist", path=self.path)
             raise InputError("INPUT must be a frames folder, an .npz (rate_e[, t_s]) or an .npy rate array",
                              path=self.path)
         if self.kind == "array":
-            if self.rate.ndim != 3:
-                raise InputError(f"rate_e must be (K, H, W); got shape {self.rate.shape}", path=self.path,
-                                 field="rate_e")
-            if self.t_s is not None and self.t_s.shape != (self.rate.shape[0],):
-                raise InputError(f"t_s has shape {self.t_s.shape}; expected ({self.rate.shape[0]},)", path=self.path,
+            if len(shape) != 3:
+                raise InputError(f"rate_e must be (K, H, W); got shape {shape}", path=self.path, field="rate_e")
+            if self.t_s is not None and self.t_s.shape != (shape[0],):
+                raise InputError(f"t_s has shape {self.t_s.shape}; expected ({shape[0]},)", path=self.path,
                                  field="t_s")
-            self.shape = self.rate.shape[1:]
-            self.n = self.rate.shape[0]
+            self.shape = tuple(shape[1:])
+            self.n = shape[0]
             self.per_interval = self.t_s is None
 
     def n_intervals(self, interval_s) -> int:
@@ -124,15 +176,38 @@ class RateSource:
             return self.n
         return n_intervals_spanned(self.t_s[0], self.t_s[-1], interval_s)
 
-    def chunks(self, profile, size: int):
+    def _read(self, profile, i: int, j: int) -> np.ndarray:
         from sensor import photoelectron_rate
-        for i in range(0, self.n, size):
-            j = min(self.n, i + size)
-            if self.kind == "frames":
-                rate = np.stack([photoelectron_rate(self.frames.read(q).phi, profile) for q in range(i, j)])
-            else:
-                rate = self.rate[i:j]
-            yield rate, (None if self.t_s is None else self.t_s[i:j])
+        if self.kind == "frames":
+            return np.stack([photoelectron_rate(self.frames.read(q).phi, profile) for q in range(i, j)]).astype(
+                np.float32, copy=False)
+        if self._member is not None:
+            return self._member.rows(i, j).astype(np.float32, copy=False)
+        return np.asarray(self.rate[i:j], dtype=np.float32)  # a view of the map for float32 files
+
+    def chunks(self, profile, size: int, prefetch: bool = True):
+        """Yield (rate_e, t_s) chunks of ``size`` rows; the next chunk is read in a thread meanwhile."""
+        bounds = [(i, min(self.n, i + size)) for i in range(0, self.n, size)]
+        try:
+            if not prefetch or len(bounds) < 2:
+                for i, j in bounds:
+                    yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
+                return
+            from concurrent.futures import ThreadPoolExecutor
+            with ThreadPoolExecutor(1, thread_name_prefix="r2s-read") as ex:
+                fut = ex.submit(self._read, profile, *bounds[0])
+                for k, (i, j) in enumerate(bounds):
+                    rate = fut.result()
+                    fut = ex.submit(self._read, profile, *bounds[k + 1]) if k + 1 < len(bounds) else None
+                    yield rate, (None if self.t_s is None else self.t_s[i:j])
+                    del rate
+        finally:
+            self.close()
+
+    def close(self):
+        if self._member is not None:
+            self._member.close()
+            self._member = None
 
 
 def run(args) -> int:
@@ -158,7 +233,12 @@ def run(args) -> int:
                      seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
                      extra=extra) as writer, \
             tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
-        for rate, t in src.chunks(profile, max(1, args.chunk)):
+        size = max(1, args.chunk)
+        if src.per_interval:
+            # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
+            # whole blocks (aligned): the schedule then takes views of them and never copies rows
+            size = sim.block * -(-size // sim.block)
+        for rate, t in src.chunks(profile, size):
             for bits in sim.iter_feed_packed(rate, t):  # bit-packed blocks: 1 bit per pixel-interval
                 writer.write_packed(bits, profile.shape)
                 bar.update(bits.shape[0])

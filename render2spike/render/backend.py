@@ -6,12 +6,18 @@ of Debian 12) Dr.Jit *aborts the process*, which no ``try`` can catch. So:
 
 1. ``DRJIT_LIBLLVM_PATH`` is set (before ``import mitsuba``) to the first of
    :data:`LLVM_CANDIDATES` that exists, unless the user has already set it;
-2. the LLVM variant is first tried in a child process (:func:`probe_variant`);
-   only if the child succeeds is it set in this process;
-3. otherwise the scalar variant (``scalar_spectral``; slower, same physics) is
+2. if a CUDA device and driver are present (:func:`cuda_device_present`: an
+   NVIDIA device node or ``libcuda``, checked without initialising anything)
+   and this Mitsuba build has :data:`GPU_VARIANT`, that variant is tried in a
+   child process (:func:`probe_variant`) and used if the child succeeds;
+3. else the LLVM variant, tried the same way;
+4. otherwise the scalar variant (``scalar_spectral``; slower, same physics) is
    used, with a message saying to ``apt-get install libllvm19``.
 
-The environment variable ``RENDER2SPIKE_VARIANT`` forces a variant.
+The environment variable ``RENDER2SPIKE_VARIANT`` forces a variant (e.g.
+``llvm_ad_spectral`` on a machine with a GPU, to keep to the CPU). The variant
+is part of every frames folder's scene hash (``job.settings_of``), so frames
+rendered on a GPU and on a CPU are never mixed in one folder.
 """
 
 from __future__ import annotations
@@ -39,10 +45,65 @@ LLVM_CANDIDATES = (
     "/usr/local/opt/llvm/lib/libLLVM.dylib",
 )
 PREFERRED_VARIANT = "llvm_ad_spectral"
+GPU_VARIANT = "cuda_ad_spectral"
 FALLBACK_VARIANT = "scalar_spectral"
 INSTALL_HINT = ("Mitsuba's fast LLVM variant needs a libLLVM it can use (LLVM 17-19); on Debian/Ubuntu run "
                 "`apt-get install libllvm19` (or set DRJIT_LIBLLVM_PATH to a libLLVM.so). Falling back to the "
                 f"'{FALLBACK_VARIANT}' variant: same results, several times slower.")
+
+
+def variant_family(variant: str) -> str:
+    """``cuda``, ``llvm`` or ``scalar``: the back end a Mitsuba variant runs on."""
+    return variant.split("_", 1)[0]
+
+
+def cuda_device_present() -> bool:
+    """Cheap, side-effect-free check for an NVIDIA device and driver (no CUDA initialisation here).
+
+    Linux: a ``/dev/nvidia<N>`` device node and a loadable-looking ``libcuda``; elsewhere
+    ``libcuda``/``nvcuda`` found by :func:`ctypes.util.find_library`. The real test is the
+    child-process probe of :data:`GPU_VARIANT`.
+    """
+    import ctypes.util
+    import glob
+    if sys.platform.startswith("linux"):
+        if not glob.glob("/dev/nvidia[0-9]*"):  # no device node: nothing more to look at
+            return False
+        return bool(ctypes.util.find_library("cuda")) or any(Path(d, "libcuda.so.1").exists() for d in
+                                ("/usr/lib/x86_64-linux-gnu", "/usr/lib64", "/usr/lib/wsl/lib",
+                                 "/usr/local/nvidia/lib64", "/usr/lib/aarch64-linux-gnu"))
+    return bool(ctypes.util.find_library("cuda") or ctypes.util.find_library("nvcuda"))
+
+
+def choose_variant(want: str | None, available, cuda_present: bool, probe) -> tuple[str, list[str]]:
+    """The variant to use and notes for the user; pure logic (``probe(variant) -> (ok, message)``).
+
+    ``want`` (argument or ``$RENDER2SPIKE_VARIANT``) wins, after a probe when it needs a JIT back end;
+    otherwise :data:`GPU_VARIANT` when a CUDA device is present, available and its probe passes, then
+    :data:`PREFERRED_VARIANT` if its probe passes, then :data:`FALLBACK_VARIANT`.
+    """
+    notes = []
+    if want:
+        if want not in available:
+            raise DependencyError(f"Mitsuba variant '{want}' is not available; this build has: "
+                                  f"{', '.join(sorted(available))}")
+        if variant_family(want) in ("llvm", "cuda"):
+            ok, msg = probe(want)
+            if not ok:
+                hint = INSTALL_HINT if variant_family(want) == "llvm" else \
+                    "The CUDA variant needs an NVIDIA GPU with a working driver."
+                raise DependencyError(f"Mitsuba variant '{want}' does not work here ({msg}). {hint}")
+        return want, notes
+    if cuda_present and GPU_VARIANT in available:
+        ok, msg = probe(GPU_VARIANT)
+        if ok:
+            return GPU_VARIANT, notes
+        notes.append(f"a CUDA device was found but Mitsuba's '{GPU_VARIANT}' did not work ({msg}); using the CPU")
+    ok, msg = probe(PREFERRED_VARIANT)
+    if ok:
+        return PREFERRED_VARIANT, notes
+    notes.append(f"{INSTALL_HINT} (probe said: {msg})")
+    return FALLBACK_VARIANT, notes
 
 
 def find_libllvm() -> str | None:
@@ -87,6 +148,7 @@ def mitsuba(variant: str | None = None):
     """Import Mitsuba with a working spectral variant set; returns the ``mitsuba`` module.
 
     ``variant`` (or ``$RENDER2SPIKE_VARIANT``) forces one; otherwise
+    :func:`choose_variant` picks the CUDA variant when a GPU works, else
     :data:`PREFERRED_VARIANT` if it passes :func:`probe_variant`, else
     :data:`FALLBACK_VARIANT`. The choice is made once per process.
     """
@@ -104,19 +166,11 @@ def mitsuba(variant: str | None = None):
     except ImportError as exc:
         raise DependencyError("Mitsuba 3 is not installed: run `pip install 'render2spike[render]'` "
                               "(mitsuba>=3.5, drjit)") from exc
-    chosen = want
-    if chosen is None:
-        ok, msg = probe_variant(PREFERRED_VARIANT, lib)
-        if ok:
-            chosen = PREFERRED_VARIANT
-        else:
-            warnings.warn(f"{INSTALL_HINT} (probe said: {msg})", RuntimeWarning, stacklevel=2)
-            print(f"render2spike: note: {INSTALL_HINT}", file=sys.stderr)
-            chosen = FALLBACK_VARIANT
-    elif chosen.startswith("llvm"):
-        ok, msg = probe_variant(chosen, lib)
-        if not ok:
-            raise DependencyError(f"Mitsuba variant '{chosen}' does not work here ({msg}). {INSTALL_HINT}")
+    chosen, notes = choose_variant(want, set(mi.variants()), want is None and cuda_device_present(),
+                                   lambda v: probe_variant(v, lib))
+    for note in notes:
+        warnings.warn(note, RuntimeWarning, stacklevel=2)
+        print(f"render2spike: note: {note}", file=sys.stderr)
     if chosen not in mi.variants():
         raise DependencyError(f"Mitsuba variant '{chosen}' is not available; this build has: "
                               f"{', '.join(mi.variants())}")

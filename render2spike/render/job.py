@@ -31,8 +31,8 @@ from sensor.fileio import provenance, write_json_atomic
 from sensor.frames import MANIFEST_NAME, frame_filename, read_frame, write_frame, write_manifest
 
 from . import backend
-from .noise import choose_spp, keyframes_per_window, pair_variance, render_noise_ratio
-from .sampling import TimeGrid, adaptive_ticks, change_metric
+from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
+from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
 from .scene import Scene
 
 STATE_NAME = "render_state.json"
@@ -78,7 +78,10 @@ def _read_json(p: Path):
 
 def settings_of(scene: Scene, variant: str) -> dict:
     """Everything besides the scene data that changes the frames (part of the hash)."""
-    return {"variant": variant, "frames_format": 1}
+    # variant_family keeps GPU (cuda) and CPU (llvm/scalar) frames apart; procedure 2: exact spp in one
+    # launch per frame, fitted noise budget, curvature-based keyframes (frames of procedure 1 are not resumed)
+    return {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 1,
+            "procedure": 2}
 
 
 def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
@@ -123,33 +126,16 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
     W = int(ncfg["window_intervals"])
     rate_scale = rnd.rate_scale()
 
-    # ---- noise budget: two pilot pairs at t = 0 ------------------------------------------
-    from .photometry import to_physical
-    n1 = rnd.effective_spp(int(ncfg["pilot_spp"]))
-    n2 = rnd.effective_spp(4 * n1)
-    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(4, dtype=np.uint32)
-    pil = {}
-    for j, n in enumerate((n1, n2)):
-        pair = []
-        for s in seeds[2 * j:2 * j + 2]:
-            raw_p, raw_e = rnd.render_raw(0.0, int(s), n)
-            pair.append(to_physical(raw_p, raw_e, rnd.k, rnd.f_number, rnd.transmission, rnd.cos4)[0])
-        pil[n] = pair
-    var1 = pair_variance(*pil[n1]) * rate_scale ** 2
-    var2 = pair_variance(*pil[n2]) * rate_scale ** 2
-    rate_pilot = 0.5 * (pil[n2][0] + pil[n2][1]) * rate_scale
+    # ---- noise budget: pilot pairs at t = 0, convergence fitted (noise.pilot_budget) -----------
     K = keyframes_per_window(W, scene.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
-    budget = choose_spp(rate_pilot, float(var1.mean()), n1, float(var2.mean()), n2, W, K,
-                        float(ncfg["target_ratio"]), int(ncfg["min_spp"]), int(ncfg["max_spp"]))
-    spp_req = int(rcfg["spp"]) if rcfg["spp"] != "auto" else budget["spp"]
-    half, halves = rnd.frame_spp(spp_req)
-    spp = half * halves  # what the stratified sampler really takes
+    budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale)
+    spp = int(rcfg["spp"]) if rcfg["spp"] != "auto" else budget["spp"]  # taken exactly (launch_counts)
     if rcfg["spp"] == "auto" and budget["clipped"]:
         log(f"render: note: the noise budget asks for {budget['spp_needed']} spp, more than max_spp = "
             f"{ncfg['max_spp']}; render noise will be ~{budget['predicted_ratio']:.2f} of the shot noise over "
             f"{W} intervals (recorded per frame as render_noise_ratio)")
     # noise floor of the change metric: smoothed pilot variance, scaled to the chosen spp
-    v_px = pair_variance(*pil[n2]) * (n2 / spp)
+    v_px = pilot_var_px(spp)
     var_floor = np.maximum(_box(v_px, 2), float(np.median(v_px)))
 
     # ---- adaptive keyframes ---------------------------------------------------------
@@ -175,7 +161,8 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
             if bar:
                 bar.update(1)
             return fr.phi.astype(np.float64)
-        f = rnd.render_frame(t_s, int(rcfg["seed"]), spp)
+        # the achieved ratio is measured on the first and every VERIFY_EVERY-th frame (one extra render each)
+        f = rnd.render_frame(t_s, int(rcfg["seed"]), spp, variance=n_rendered % VERIFY_EVERY == 0)
         rate_var = None if f["phi_var"] is None else f["phi_var"] * rate_scale ** 2
         ratio = render_noise_ratio(f["phi"] * rate_scale, rate_var, W, K)
         ratios.append(ratio)
@@ -195,8 +182,7 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
             bar.update(1)
         return f["phi"]
 
-    def metric(a, b):
-        return change_metric(a, b, var_floor, var_floor, z=4.0)
+    metric = interpolation_metric(var_floor, rate_scale, W, scene.profile.interval_s, z=4.0)
 
     def on_new(n):
         if bar:
@@ -216,6 +202,9 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         (out / state["frames"][k]["file"]).unlink(missing_ok=True)
         del state["frames"][k]
     all_ratios = [state["frames"][str(t)].get("render_noise_ratio", float("nan")) for t in ticks]
+    verified, warn = verify_ratios(all_ratios, float(ncfg["target_ratio"]), rcfg["spp"] == "auto", budget)
+    if warn:
+        log(f"render: warning: {warn}")
     seconds = time.perf_counter() - t_start
     prof = scene.profile
     extra = {
@@ -235,7 +224,7 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         "noise_budget": budget,
         "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
                                "max": float(np.nanmax(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
-                               "window_intervals": W, "keyframes_per_window": K},
+                               "window_intervals": W, "keyframes_per_window": K, **verified},
         "temporal_sampling": {"base_rate_hz": float(rcfg["keyframe_rate_hz"]), "max_rate_hz": float(acfg["max_rate_hz"]),
                               "tolerance": float(acfg["tolerance"]), "adaptive": bool(acfg["enabled"]),
                               "n_base": grid.n_base + 1, "n_keyframes": len(ticks),

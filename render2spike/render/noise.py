@@ -14,16 +14,34 @@ Definitions (per pixel, rate in e-/interval)
 * The spp is chosen so that ``rho <= target_ratio`` (default 0.2: render
   variance <= 4 % of shot-noise variance), clipped to [min_spp, max_spp].
 
-The per-keyframe variance's dependence on spp is measured, not assumed: the
-stratified sampler converges faster than 1/spp, so a pilot renders two
-independent pairs at ``n1 = pilot_spp`` and ``n2 = 4 n1`` samples at t = 0,
-estimates ``v(n) = mean over pixels of (a - b)^2 / 2`` at both and reports the
-convergence exponent ``alpha`` of ``v ~ n^-alpha`` (clipped to [1, 2]). The
-spp is then solved from ``v(n) = v(n2) n2 / n`` (alpha = 1 beyond n2): with
-stratified sampling ``n v(n)`` does not grow with n, so this is conservative
-(the measured per-frame ratio is at most the predicted one, up to noise).
-Every frame then measures its own ``rho`` from its two independent halves
-(recorded in the frame header as ``render_noise_ratio``).
+How the variance falls with spp is measured, not assumed
+--------------------------------------------------------
+The stratified (``multijitter``) sampler converges faster than 1/spp where the
+integrand is smooth in the pixel (texture edges, soft shadows: 1/spp^2 and
+faster) and like 1/spp where it is not (light sampling after a bounce). So the
+pilot (:func:`pilot_budget`) renders independent pairs at t = 0 at ``n1`` (the
+pilot spp), ``n2 = 4 n1`` and, when the answer lies beyond ``n2``, ``n3 = 16 n1``;
+``v(n)`` is the mean over pixels of ``(a - b)^2 / 2`` at each level, and
+
+    V(n) = A / n + B / n^2,   A, B >= 0          (:func:`fit_convergence`)
+
+is fitted to them (least squares in relative error). The model is exact for
+pure 1/n and pure 1/n^2 convergence and over-estimates the variance of any
+power law ``n^-alpha`` in between when extrapolated beyond the pilots, so its
+answer ``c`` is conservative. A last pair is then rendered *at* ``c`` (the
+variance is not smooth in n: ``multijitter`` strata change shape with the count)
+and the final spp is solved on the measured points alone
+(:class:`Measured`: power laws between neighbouring levels, ``(n1/n)^2`` below
+the first, ``1/n`` beyond the last; both conservative), so it is interpolated,
+never extrapolated, unless ``c`` itself missed. The spp is rounded up to a count
+the sampler takes exactly. Cost: pairs at 4, 16, 64 spp and at ``c``, once.
+
+The budget is then *verified*: some frames (the first, then every
+:data:`VERIFY_EVERY`-th rendered) get a second, independent render whose
+difference measures that frame's ``rho`` (the frame itself is the first render,
+so it has exactly the asked spp); the ratio is recorded in the frame header and
+summarised in the manifest, with a warning when it misses the band
+``[0.75, 1.25] x target`` (:func:`verify_ratios`).
 """
 
 from __future__ import annotations
@@ -31,6 +49,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+#: every how many rendered frames the achieved render-noise ratio is measured (one extra launch each)
+VERIFY_EVERY = 16
+#: the achieved ratio should lie in [BAND[0], BAND[1]] x target (0.15-0.25 for the default target 0.2)
+BAND = (0.75, 1.25)
 
 
 def keyframes_per_window(window_intervals: int, interval_s: float, keyframe_rate_hz: float) -> float:
@@ -51,27 +74,210 @@ def pair_variance(a, b) -> np.ndarray:
     return (np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2 / 2.0
 
 
-def choose_spp(rate_e, var_n1: float, n1: int, var_n2: float, n2: int, window_intervals: int, k_frames: float,
-               target_ratio: float, min_spp: int, max_spp: int) -> dict:
-    """The spp meeting the budget from pilot variances (mean over pixels, rate units) at n1 and n2 spp."""
+class Convergence:
+    """``V(n) = A/n + B/n^2`` for n >= n_min, ``V(n_min) (n_min/n)^2`` below; fitted by :func:`fit_convergence`."""
+
+    def __init__(self, a: float, b: float, n_min: int):
+        self.a, self.b, self.n_min = float(a), float(b), int(n_min)
+
+    def __call__(self, n) -> float:
+        n = float(n)
+        if n < self.n_min:
+            return self(self.n_min) * (self.n_min / n) ** 2
+        return self.a / n + self.b / n ** 2
+
+    def solve(self, allowed: float) -> float:
+        """Smallest real n with V(n) <= allowed (allowed > 0)."""
+        if self(self.n_min) <= allowed:
+            # V(n_min) (n_min / n)^2 <= allowed below n_min
+            return self.n_min * math.sqrt(self(self.n_min) / allowed)
+        a, b = self.a, self.b
+        return (a + math.sqrt(a * a + 4.0 * allowed * b)) / (2.0 * allowed)
+
+    @property
+    def alpha_local(self) -> float:
+        """Local convergence exponent -dlog V/dlog n at n_min (1: like 1/n, 2: like 1/n^2)."""
+        n = self.n_min
+        v = self.a / n + self.b / n ** 2
+        return float((self.a / n + 2 * self.b / n ** 2) / v) if v > 0 else 1.0
+
+
+class Measured:
+    """``V(n)`` through measured (n, v) points: power laws between neighbours, ``(n0/n)^2`` below, ``1/n`` above."""
+
+    def __init__(self, ns, vs):
+        order = np.argsort(ns)
+        self.ns = np.asarray(ns, np.float64)[order]
+        v = np.asarray(vs, np.float64)[order]
+        self.vs = np.minimum.accumulate(np.maximum(v, 1e-300))  # non-increasing (pair noise can break it)
+        self.n_min = int(self.ns[0])
+        self.a, self.b = float(self.vs[-1] * self.ns[-1]), 0.0  # the 1/n tail, for the record
+
+    def __call__(self, n) -> float:
+        n = float(n)
+        ns, vs = self.ns, self.vs
+        if n <= ns[0]:
+            return float(vs[0] * (ns[0] / n) ** 2)
+        if n >= ns[-1]:
+            return float(vs[-1] * ns[-1] / n)
+        j = int(np.searchsorted(ns, n)) - 1
+        u = math.log(n / ns[j]) / math.log(ns[j + 1] / ns[j])
+        return float(math.exp((1 - u) * math.log(vs[j]) + u * math.log(vs[j + 1])))
+
+    def solve(self, allowed: float) -> float:
+        lo, hi = 1e-3, float(self.ns[-1])
+        if self(hi) > allowed:
+            return float(self.vs[-1] * self.ns[-1] / allowed)
+        for _ in range(100):  # bisection in log n (V is non-increasing)
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if self(mid) > allowed else (lo, mid)
+        return hi
+
+    @property
+    def alpha_local(self) -> float:
+        if self.ns.size < 2:
+            return 1.0
+        return float(math.log(self.vs[0] / self.vs[1]) / math.log(self.ns[1] / self.ns[0]))
+
+
+def fit_convergence(ns, vs) -> Convergence:
+    """Fit ``V(n) = A/n + B/n^2`` (A, B >= 0) to mean variances ``vs`` at spp ``ns`` (relative least squares)."""
+    from scipy.optimize import nnls
+    ns = np.asarray(ns, np.float64)
+    vs = np.asarray(vs, np.float64)
+    ok = vs > 0
+    if not np.any(ok):
+        return Convergence(0.0, 0.0, int(ns.min()))
+    ns, vs = ns[ok], vs[ok]
+    if ns.size == 1:
+        return Convergence(vs[0] * ns[0], 0.0, int(ns[0]))  # one level: assume 1/n
+    M = np.c_[1.0 / ns, 1.0 / ns ** 2] / vs[:, None]
+    (a, b), _ = nnls(M, np.ones_like(vs))
+    return Convergence(a, b, int(ns.min()))
+
+
+def choose_spp_fit(rate_e, model: Convergence, window_intervals: int, k_frames: float, target_ratio: float,
+                   min_spp: int, max_spp: int, exact=None) -> dict:
+    """The least spp meeting the budget under the fitted convergence ``model`` (rate units).
+
+    ``exact(n)`` rounds a count up to one the sampler takes exactly (identity if None).
+    """
+    exact = exact or (lambda n: int(n))
     r = float(np.mean(rate_e))
-    if var_n2 > 0 and var_n1 > 0:
-        alpha = float(np.clip(math.log(var_n1 / var_n2) / math.log(n2 / n1), 1.0, 2.0))
-    else:
-        alpha = 1.0
     allowed = target_ratio ** 2 * k_frames * r / window_intervals  # max per-keyframe variance
-    if not r > 0 or var_n2 <= 0:
-        need = min_spp
+    if not r > 0 or model(model.n_min) <= 0:
+        need = int(min_spp)
     else:
-        need = math.ceil(n2 * var_n2 / allowed)
-    spp = int(min(max(need, min_spp), max_spp))
+        need = max(1, int(math.ceil(model.solve(allowed) - 1e-9)))
+    spp = exact(int(min(max(need, min_spp), max_spp)))
+    if spp > max_spp:  # rounding up overshot the cap: the largest exact count within it
+        spp = exact_below(exact, int(max_spp))
 
     def predicted(n):
         if not r > 0:
             return float("nan")
-        v = var_n2 * n2 / n
-        return math.sqrt(window_intervals * v / (k_frames * r))
-    return {"spp": spp, "spp_needed": int(max(need, 1)), "predicted_ratio": predicted(spp), "alpha": alpha,
-            "mean_rate_e": r, "pilot": {"spp": [int(n1), int(n2)], "mean_var_rate_e2": [float(var_n1), float(var_n2)]},
-            "window_intervals": int(window_intervals), "keyframes_per_window": float(k_frames),
-            "target_ratio": float(target_ratio), "clipped": bool(need > max_spp)}
+        return math.sqrt(window_intervals * model(n) / (k_frames * r))
+    return {"spp": int(spp), "spp_needed": int(need), "predicted_ratio": predicted(spp),
+            "model": {"form": "V(n) = A/n + B/n^2 [(e-/interval)^2]", "A": model.a, "B": model.b,
+                      "alpha_at_pilot": model.alpha_local},
+            "mean_rate_e": r, "window_intervals": int(window_intervals), "keyframes_per_window": float(k_frames),
+            "target_ratio": float(target_ratio), "clipped": bool(need > max_spp),
+            "at_min_spp": bool(need < min_spp)}
+
+
+def choose_spp(rate_e, var_n1: float, n1: int, var_n2: float, n2: int, window_intervals: int, k_frames: float,
+               target_ratio: float, min_spp: int, max_spp: int) -> dict:
+    """The spp meeting the budget from pilot variances (mean over pixels, rate units) at n1 and n2 spp."""
+    model = fit_convergence([n1, n2], [var_n1, var_n2])
+    out = choose_spp_fit(rate_e, model, window_intervals, k_frames, target_ratio, min_spp, max_spp)
+    out["pilot"] = {"spp": [int(n1), int(n2)], "mean_var_rate_e2": [float(var_n1), float(var_n2)]}
+    return out
+
+
+def exact_below(exact, n: int) -> int:
+    """The largest count <= n that ``exact`` keeps unchanged (1 always is)."""
+    for m in range(int(n), 0, -1):
+        if exact(m) == m:
+            return m
+    return 1
+
+
+def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float):
+    """Pilot renders at t = 0 -> (budget dict, per-pixel variance function ``v_px(spp)`` in Phi units^2).
+
+    ``rnd`` is a :class:`~.renderer.SceneRenderer`. Levels ``n1 = pilot_spp``, ``4 n1`` and, if the
+    two-level answer exceeds ``4 n1``, ``16 n1`` (rounded up to exact sampler counts), each an
+    independent pair of renders with seeds derived from the scene seed.
+    """
+    from .photometry import to_physical
+    rcfg = scene.render
+    ncfg = rcfg["noise"]
+    exact = rnd.effective_spp
+    n1 = exact(int(ncfg["pilot_spp"]))
+    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(8, dtype=np.uint32)
+    pil, levels, var_means = {}, [], []
+
+    def level(j, n):
+        pair = []
+        for s in seeds[2 * j:2 * j + 2]:
+            raw_p, raw_e = rnd.render_raw(0.0, int(s), n)
+            pair.append(to_physical(raw_p, raw_e, rnd.k, rnd.f_number, rnd.transmission, rnd.cos4)[0])
+        pil[n] = pair
+        levels.append(n)
+        var_means.append(float(pair_variance(*pair).mean()) * rate_scale ** 2)
+
+    args = (window_intervals, k_frames, float(ncfg["target_ratio"]), int(ncfg["min_spp"]), int(ncfg["max_spp"]),
+            exact)
+    level(0, n1)
+    level(1, exact(4 * n1))
+    rate = lambda: 0.5 * (pil[levels[-1]][0] + pil[levels[-1]][1]) * rate_scale  # noqa: E731
+    budget = choose_spp_fit(rate(), fit_convergence(levels, var_means), *args)
+    if budget["spp_needed"] > levels[-1]:  # extrapolating: measure one level further out
+        level(2, exact(16 * n1))
+        budget = choose_spp_fit(rate(), fit_convergence(levels, var_means), *args)
+    fitted = budget
+    if budget["spp"] not in pil and not budget["at_min_spp"]:
+        # measure the candidate itself (the sampler's variance is not smooth in n: multijitter's
+        # strata change shape), then solve on measured points only
+        level(3, budget["spp"])
+    model = Measured(levels, var_means) if len(levels) > 1 else fit_convergence(levels, var_means)
+    budget = choose_spp_fit(rate(), model, *args)
+    budget["model"] = {"form": "power laws between the measured pilot levels", "fit_A_over_n_B_over_n2":
+                       fitted["model"], "alpha_at_pilot": model.alpha_local}
+    budget["fit_candidate_spp"] = fitted["spp"]
+    budget["pilot"] = {"spp": [int(n) for n in levels], "mean_var_rate_e2": var_means}
+    near = min(levels, key=lambda n: abs(math.log(n / max(budget["spp"], 1))))
+    v_near = pair_variance(*pil[near])
+    v_ref = model(near)
+
+    def v_px(spp: int) -> np.ndarray:
+        """Per-pixel variance [Phi units^2] of one frame at ``spp``: the nearest pilot level scaled by the model."""
+        return v_near * (model(spp) / v_ref if v_ref > 0 else near / float(spp))
+    return budget, v_px
+
+
+def verify_ratios(ratios, target_ratio: float, auto: bool, budget: dict | None = None) -> tuple[dict, str | None]:
+    """Summary of the measured per-frame ratios and a warning if they miss the band around the target.
+
+    Below the band is only a miss when the budget could have used fewer samples (``auto`` and
+    not held up by ``min_spp``); above it, whenever ``auto`` and the budget was not capped by ``max_spp``.
+    """
+    r = np.asarray([x for x in ratios if x is not None and np.isfinite(x)], np.float64)
+    lo, hi = BAND[0] * target_ratio, BAND[1] * target_ratio
+    out = {"n_verified": int(r.size), "band": [lo, hi]}
+    if not r.size:
+        return out, None
+    out.update(verified_mean=float(r.mean()), verified_min=float(r.min()), verified_max=float(r.max()))
+    mean = float(r.mean())
+    out["in_band"] = bool(lo <= mean <= hi)
+    if not auto or out["in_band"]:
+        return out, None
+    budget = budget or {}
+    if mean > hi and not budget.get("clipped"):
+        return out, (f"the measured render-noise ratio {mean:.3f} (mean of {r.size} verified frames) is above "
+                     f"{hi:.3f} = {BAND[1]} x the target {target_ratio}; the noise budget under-estimated the variance")
+    if mean < lo and not budget.get("at_min_spp"):
+        return out, (f"the measured render-noise ratio {mean:.3f} (mean of {r.size} verified frames) is below "
+                     f"{lo:.3f} = {BAND[0]} x the target {target_ratio}; the noise budget spent more samples "
+                     "than needed")
+    return out, None

@@ -125,3 +125,36 @@ def direct_raw_e(light: dict, spd: SpectralCurve, point, normal) -> tuple[float,
         cos = max(0.0, float(n @ to_light))
         return v_integral(spd, strength) * cos / r ** 2, to_light, r
     return 0.0, None, 0.0
+
+
+class ShadowedReferenceWarning(UserWarning):
+    """The light-level reference point is shadowed from a delta (point/directional) light at t = 0."""
+
+
+def shadowed_reference_lights(calibration: dict) -> list[str]:
+    """Names of the delta lights that would light the reference point but are blocked by an object at t = 0.
+
+    ``calibration`` is the record of :meth:`SceneRenderer.measure_reference` (its ``delta_lights`` list, each
+    with ``raw_e_unshadowed``, the light's direct illuminance without occlusion, and ``visible``).
+    """
+    return [p["light"] for p in calibration.get("delta_lights", [])
+            if float(p.get("raw_e_unshadowed", 0.0)) > 0 and not p.get("visible", True)]
+
+
+def warn_if_reference_shadowed(calibration: dict, scene_path=None) -> list[str]:
+    """Warn (:class:`ShadowedReferenceWarning`) when the reference point lies in a delta light's shadow.
+
+    Then ``illuminance_lux`` counts only the remaining light (e.g. the sky), and the lit parts of the scene are
+    far brighter than the stated light level. Returns the shadowing lights' names.
+    """
+    import warnings
+    names = shadowed_reference_lights(calibration)
+    if names:
+        total = float(calibration.get("raw_e_total", 0.0))
+        lost = sum(float(p["raw_e_unshadowed"]) for p in calibration["delta_lights"] if p["light"] in names)
+        ratio = (total + lost) / total if total > 0 else float("inf")
+        warnings.warn(f"{scene_path or 'scene'}: the light-level reference point {calibration.get('point')} lies in "
+                      f"the shadow of {', '.join(names)} at t = 0, so illuminance_lux counts only the other light; "
+                      f"unshadowed, the same point would receive {ratio:.3g}x as much. Move 'reference' to a lit "
+                      "point.", ShadowedReferenceWarning, stacklevel=3)
+    return names

@@ -6,9 +6,10 @@ for each time ``t_s``:
 
 1. sets every moving object's ``to_world`` (or, for meshes, its vertex
    positions) and the camera's ``to_world`` from :mod:`.motion`;
-2. renders the two-channel spectral film in two independent halves (two seeds
-   derived from the base seed and the frame time), whose difference gives the
-   per-pixel Monte Carlo variance of the frame;
+2. renders the two-channel spectral film with exactly the asked samples per
+   pixel (seeds derived from the base seed and the frame time), in one launch
+   when the sampler takes that count exactly; optionally a second, independent
+   render whose difference gives the frame's per-pixel Monte Carlo variance;
 3. converts raw channels to ``Phi`` [e-/(s m^2)] and ``E`` [lux] with
    :func:`.photometry.to_physical` (the camera equation, per-pixel cos^4).
 """
@@ -24,7 +25,7 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, build_dict, to_transform
-from .photometry import cos4_map, direct_raw_e, emitter_scale, to_physical
+from .photometry import cos4_map, direct_raw_e, emitter_scale, to_physical, warn_if_reference_shadowed
 from .scene import Scene, spectrum_curve
 
 
@@ -32,15 +33,6 @@ def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
     """``n`` 32-bit render seeds for the frame at ``t_s`` [s], derived from the base seed and the time in ns."""
     ss = np.random.SeedSequence([int(base_seed), int(round(float(t_s) * 1e9)) & 0xFFFFFFFFFFFF])
     return [int(s) for s in ss.generate_state(n, dtype=np.uint32)]
-
-
-def split_variance(a, b, na: int, nb: int):
-    """Per-pixel variance of the combined mean of two independent estimates a (na spp) and b (nb spp).
-
-    E[(a-b)^2] = s^2 (1/na + 1/nb) for single-sample variance s^2, and the
-    combined estimate has variance s^2/(na+nb): so var = (a-b)^2 na nb / (na+nb)^2.
-    """
-    return (np.asarray(a) - np.asarray(b)) ** 2 * (na * nb) / float(na + nb) ** 2
 
 
 class SceneRenderer:
@@ -92,6 +84,7 @@ class SceneRenderer:
         self.load_s = time.perf_counter() - t0
         self.reference = self._reference_point()
         self.calibration = self.measure_reference()
+        warn_if_reference_shadowed(self.calibration, scene.path)
         self.k = emitter_scale(scene.illuminance_lux, self.calibration["raw_e_total"])
 
     # --------------------------------------------------------------- motion
@@ -131,44 +124,62 @@ class SceneRenderer:
     def effective_spp(self, spp: int) -> int:
         """The sample count the (stratified) sampler really takes for a request of ``spp`` (rounds up)."""
         cache = self.__dict__.setdefault("_spp_cache", {})
+        spp = max(1, int(spp))
         if spp not in cache:
-            s = self.mi.load_dict({"type": SAMPLER, "sample_count": int(spp)})
+            s = self.mi.load_dict({"type": SAMPLER, "sample_count": spp})
             cache[spp] = int(s.sample_count())
         return cache[spp]
 
-    def frame_spp(self, spp: int) -> tuple[int, int]:
-        """(samples per half, halves) used for a request of ``spp``: two equal halves unless spp == 1."""
-        if int(spp) <= 1:
-            return 1, 1
-        return self.effective_spp((int(spp) + 1) // 2), 2
+    def launch_counts(self, spp: int) -> list[int]:
+        """Sample counts of the launches that together take exactly ``spp`` samples per pixel.
 
-    def render_frame(self, t_s: float, base_seed: int, spp: int) -> dict:
+        One launch when the sampler takes ``spp`` exactly (always so for the noise budget's
+        choice); otherwise the largest exact counts first (e.g. 17 -> [16, 1]).
+        """
+        from .noise import exact_below
+        cache = self.__dict__.setdefault("_launch_cache", {})
+        spp = max(1, int(spp))
+        if spp not in cache:
+            out, left = [], spp
+            while left > 0:
+                n = exact_below(self.effective_spp, left)
+                out.append(n)
+                left -= n
+            cache[spp] = out
+        return cache[spp]
+
+    def render_exact(self, t_s: float, seeds, spp: int) -> tuple[np.ndarray, np.ndarray]:
+        """Raw channels at ``t_s`` with exactly ``spp`` samples per pixel (:meth:`launch_counts`, one seed each)."""
+        counts = self.launch_counts(spp)
+        if len(counts) == 1:
+            return self.render_raw(t_s, seeds[0], counts[0])
+        acc_p = acc_e = 0.0
+        for n, s in zip(counts, seeds):
+            p, e = self.render_raw(t_s, s, n)
+            acc_p = acc_p + p * n
+            acc_e = acc_e + e * n
+        return acc_p / spp, acc_e / spp
+
+    def render_frame(self, t_s: float, base_seed: int, spp: int, variance: bool = True) -> dict:
         """Physical frame at ``t_s`` [s]: ``phi`` [e-/(s m^2)], ``lux`` [lux], ``phi_var`` (MC variance of phi).
 
-        Renders two equal halves with independent seeds (``frame_spp``); their
-        difference estimates the per-pixel Monte Carlo variance. With spp = 1
-        there is no variance estimate (``phi_var`` is None). ``spp`` in the
-        result is the total number of samples per pixel actually taken.
+        The frame takes exactly ``spp`` samples per pixel, in one launch whenever the sampler
+        takes that count exactly (:meth:`launch_counts`). With ``variance=True`` a second,
+        independent render of the same spp is made; ``phi_var = (a - b)^2 / 2`` is then the
+        per-pixel variance of the returned frame (which is the first render). Without it
+        ``phi_var`` is None and the frame costs one render.
         """
-        sa, sb = frame_seeds(base_seed, t_s, 2)
-        half, halves = self.frame_spp(spp)
-        na, nb = half, (half if halves == 2 else 0)
-        spp = na + nb
-        pa, ea = self.render_raw(t_s, sa, na)
-        if nb > 0:
-            pb, eb = self.render_raw(t_s, sb, nb)
-            raw_p = (pa * na + pb * nb) / spp
-            raw_e = (ea * na + eb * nb) / spp
-            var_raw = split_variance(pa, pb, na, nb)
-        else:
-            raw_p, raw_e, var_raw = pa, ea, None
+        counts = self.launch_counts(spp)
+        seeds = frame_seeds(base_seed, t_s, 2 * len(counts))
+        sa, sb = seeds[:len(counts)], seeds[len(counts):]
+        raw_p, raw_e = self.render_exact(t_s, sa, spp)
         phi, lux = to_physical(raw_p, raw_e, self.k, self.f_number, self.transmission, self.cos4)
-        out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": [sa, sb][: 2 if nb else 1], "spp": int(spp)}
-        if var_raw is not None:
+        out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": list(sa), "spp": int(spp), "phi_var": None}
+        if variance:
+            pb, _ = self.render_exact(t_s, sb, spp)
             fp, _ = to_physical(1.0, 1.0, self.k, self.f_number, self.transmission, self.cos4)
-            out["phi_var"] = var_raw * fp ** 2
-        else:
-            out["phi_var"] = None
+            out["phi_var"] = (raw_p - pb) ** 2 / 2.0 * fp ** 2
+            out["variance_seeds"] = list(sb)
         return out
 
     def rate_e(self, phi):
@@ -213,7 +224,8 @@ class SceneRenderer:
             e, to_light, dist = direct_raw_e(lt, spectrum_curve(lt.get("spectrum")), p, n)
             vis = e > 0 and self._visible(p, n, to_light, dist)
             direct += e if vis else 0.0
-            parts.append({"light": lt.get("name") or f"light{j}", "raw_e": e if vis else 0.0, "visible": bool(vis)})
+            parts.append({"light": lt.get("name") or f"light{j}", "raw_e": e if vis else 0.0, "visible": bool(vis),
+                          "raw_e_unshadowed": e})
         mi = self.mi
         spp = int(self.scene.render["meter_spp"])
         d, _ = build_dict(mi, self.scene, for_meter={"point": p, "normal": n, "spp": spp})

@@ -1,18 +1,34 @@
-"""Adaptive temporal sampling: keyframes at a base rate, refined where irradiance changes fast.
+"""Adaptive temporal sampling: keyframes at a base rate, refined where the sensor would see the difference.
 
-Like ESIM's adaptive sampling, keyframes are placed so that the irradiance
-changes by less than a tolerance between neighbours: starting from a uniform
-grid at ``base_rate_hz``, the interval between two neighbouring keyframes is
-halved (its midpoint rendered) while their difference exceeds ``tolerance``
-and the spacing is above ``1 / max_rate_hz``.
+Like ESIM's adaptive sampling, keyframes are placed so that the signal between
+neighbours is well described by the interpolation the sensor stage uses
+(piecewise-linear in time): starting from a uniform grid at ``base_rate_hz``,
+the interval between two neighbouring keyframes is halved (its midpoint
+rendered) while the estimated interpolation error exceeds ``tolerance`` and the
+spacing is above ``1 / max_rate_hz``.
 
-Change metric between frames A and B (Phi in any units)::
+Criterion (:func:`interpolation_metric`), in the sensor's terms
+----------------------------------------------------------------
+A change that is linear in time costs nothing: linear interpolation
+reproduces it (an edge crossing a pixel at constant speed is linear in time
+while it is inside the pixel). What the sensor gets wrong is the *curvature*
+of the per-pixel rate. From three equally spaced frames ``f0, f1, f2`` (spacing
+``h``; rate ``r`` in e-/interval) the second difference
+``D2 = f0 - 2 f1 + f2`` estimates the peak error of the linear interpolant
+on the neighbouring segments as ``e = max(0, |D2| - z sigma) / 4`` (exact
+``|D2| / 8`` for a parabola, up to ``|D2| / 2`` for a kink; ``sigma`` the Monte
+Carlo standard deviation of ``D2``, so render noise never refines). Over the
+sensor's window of ``W`` intervals the error in expected photoelectrons is
+``(2/3) e min(W, h / T_r)`` (the error's mean over a segment is about 2/3 of its
+peak), compared with the window's shot noise ``sqrt(W r)``::
 
-    d(A, B) = max_px  max(0, |A - B| - z * sqrt(var_A + var_B))  /  mean((A + B) / 2)
+    d = max over pixels of  (2/3) e min(W, h / T_r) / sqrt(W max(r, 1/W))
 
-i.e. the largest per-pixel change beyond ``z`` Monte Carlo standard
-deviations, relative to the mean irradiance of the pair. A static scene only
-differs by render noise and is never refined.
+and a segment is halved while ``d > tolerance``. Base segments use the
+curvature at both of their ends (their neighbours on the base grid); halves use
+the curvature measured by their parent's midpoint (``fm - (fa + fb) / 2``, the
+parent's actual interpolation error there). With a single base segment there
+is no neighbour and the endpoint change ``|fb - fa| / 2`` bounds ``e``.
 
 Times live on a dyadic grid: keyframe ``tick`` ``i`` is at
 ``t0 + duration * i / (n_base * 2^levels)``, so times are exact and
@@ -71,34 +87,79 @@ def change_metric(a, b, var_a=None, var_b=None, z: float = 4.0) -> float:
     return float(diff.max() / mean)
 
 
+def interpolation_metric(var_floor, rate_scale: float, window_intervals: int, interval_s: float, z: float = 4.0):
+    """The refinement criterion ``metric(f0, f1, f2, spacing_s)`` (module docstring) for frames in Phi units.
+
+    ``var_floor``: per-pixel Monte Carlo variance of one keyframe [Phi units^2] (scalar or (H, W));
+    ``rate_scale``: e-/interval per unit Phi; ``window_intervals``: the sensor window W;
+    ``f2=None``: only two frames (f0, f1), the endpoint bound is used.
+    """
+    W = float(window_intervals)
+    sd = np.sqrt(np.asarray(var_floor, np.float64)) * float(rate_scale)
+
+    def metric(f0, f1, f2, spacing_s: float) -> float:
+        a = np.asarray(f0, np.float64) * rate_scale
+        b = np.asarray(f1, np.float64) * rate_scale
+        if f2 is None:
+            e = np.maximum(0.0, np.abs(b - a) - z * np.sqrt(2.0) * sd) / 2.0
+            r = 0.5 * (a + b)
+        else:
+            c = np.asarray(f2, np.float64) * rate_scale
+            e = np.maximum(0.0, np.abs(a - 2.0 * b + c) - z * np.sqrt(6.0) * sd) / 4.0
+            r = (a + b + c) / 3.0
+        seg = min(W, float(spacing_s) / float(interval_s))
+        err = (2.0 / 3.0) * e * seg
+        return float(np.max(err / np.sqrt(W * np.maximum(r, 1.0 / W))))
+    return metric
+
+
 def adaptive_ticks(grid: TimeGrid, get_frame, metric, tolerance: float, on_new=None, adaptive: bool = True):
     """Walk the grid, calling ``get_frame(tick)`` for every keyframe needed; return the sorted ticks.
 
-    ``metric(frame_a, frame_b)`` returns the change between two frames;
-    intervals with ``metric > tolerance`` are halved down to one tick.
-    ``on_new(n)`` is told each time n more frames are scheduled (progress bars).
+    ``metric(f0, f1, f2, spacing_s)`` estimates the interpolation error next to three equally
+    spaced frames (``f2=None``: two frames); segments with ``metric > tolerance`` are halved
+    down to one tick. Base frames are rendered one ahead (a segment's decision needs the base
+    frame after it). ``on_new(n)`` is told each time n more frames are scheduled (progress bars).
     """
-    ticks = []
     base = grid.base_ticks()
-    prev_tick, prev = base[0], get_frame(base[0])
-    ticks.append(prev_tick)
-    for nxt_tick in base[1:]:
-        nxt = get_frame(nxt_tick)
-        stack = [(prev_tick, prev, nxt_tick, nxt)]
-        while stack:
-            ta, fa, tb, fb = stack.pop()
-            if not adaptive or tb - ta < 2 or metric(fa, fb) <= tolerance:
-                continue
-            tm = (ta + tb) // 2
-            if on_new:
-                on_new(1)
-            fm = get_frame(tm)
-            ticks.append(tm)
-            # push the later half first so the earlier half is refined first (frames in time order)
-            stack.append((tm, fm, tb, fb))
-            stack.append((ta, fa, tm, fm))
-        ticks.append(nxt_tick)
-        prev_tick, prev = nxt_tick, nxt
+    nb = len(base)
+    h = grid.time(grid.step) - grid.time(0)
+    held = {}  # base frames still needed
+
+    def frame(k):
+        if base[k] not in held:
+            held[base[k]] = get_frame(base[k])
+        return held[base[k]]
+
+    ticks = [base[0]]
+    frame(0)
+    for i in range(nb - 1):
+        ta, tb = base[i], base[i + 1]
+        fa, fb = frame(i), frame(i + 1)
+        if adaptive and tb - ta >= 2:
+            ds = []
+            if i > 0:
+                ds.append(metric(frame(i - 1), fa, fb, h))
+            if i + 2 < nb:
+                ds.append(metric(fa, fb, frame(i + 2), h))
+            d = max(ds) if ds else metric(fa, fb, None, h)
+            stack = [(ta, fa, tb, fb, d)]
+            while stack:
+                a, f_a, b, f_b, d = stack.pop()
+                if d <= tolerance or b - a < 2:
+                    continue
+                m = (a + b) // 2
+                if on_new:
+                    on_new(1)
+                f_m = get_frame(m)
+                ticks.append(m)
+                dc = metric(f_a, f_m, f_b, 0.5 * (grid.time(b) - grid.time(a)))
+                # the later half first on the stack, so the earlier half is refined first (time order)
+                stack.append((m, f_m, b, f_b, dc))
+                stack.append((a, f_a, m, f_m, dc))
+        ticks.append(tb)
+        if i > 0:
+            held.pop(base[i - 1], None)
     return sorted(ticks)
 
 

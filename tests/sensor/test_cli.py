@@ -28,7 +28,7 @@ def test_simulate_from_npz_keyframes_matches_python_api(tmp_path, capsys):
     rc = main(["simulate", str(tmp_path / "rate.npz"), "--out", str(tmp_path / "s.npz"), "--profile", str(prof_path),
                "--seed", "9", "--quiet", "--chunk", "2"])
     assert rc == 0
-    spikes, meta = sensor.read_spikes(tmp_path / "s.npz")
+    spikes, meta = sensor.read_spikes_with_meta(tmp_path / "s.npz")
     np.testing.assert_array_equal(spikes, sensor.simulate(rate, prof, "elssim", seed=9, t_s=t))
     assert meta["seed"] == 9 and meta["model"] == "elssim" and meta["profile_id"] == prof.name
 

@@ -68,7 +68,7 @@ def test_spike_container_keeps_metadata(tmp_path):
     s = np.random.default_rng(0).random((9, 3, 5)) < 0.5
     p = sensor.write_spikes(tmp_path / "s.npz", s, interval_s=5e-5, model="elssim", profile_id="x", seed=4,
                             source="unit")
-    back, meta = sensor.read_spikes(p)
+    back, meta = sensor.read_spikes_with_meta(p)
     np.testing.assert_array_equal(back, s)
     assert meta["model"] == "elssim" and meta["seed"] == 4 and meta["interval_s"] == 5e-5 and meta["profile_id"] == "x"
     assert "provenance" in meta

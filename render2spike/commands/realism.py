@@ -1,0 +1,133 @@
+"""``render2spike realism``: hold a real spike recording against each spike model."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "compare a real spike recording with each spike model (statistics per mean ISI, figure, distances)"
+DESCRIPTION = """\
+Hold a real recording against the spike models.
+
+1. RECORDING is read in any layout `render2spike convert --help` lists
+   (Spike-Zoo/UHSR .npz, SpikingSIM .npz, RSIR .npz, Vidar .dat, containers, .h5).
+2. Motion: a pixel enters the ISI and count statistics only if its 3x3
+   neighbourhood's counts in --segments parts pass a chi-square dispersion test and
+   its ISIs show no linear trend (both at --alpha); neighbours of failing pixels are
+   left out too. The same tests select the simulated pixels.
+3. Each pixel's light [e-/interval] is estimated from its spike rate: the exact
+   renewal relation for elssim with the interval reset, otherwise the model's own
+   rate-light curve measured by simulation.
+4. Each model simulates that light for the same duration and H x W (seeded).
+5. Statistics per mean-ISI bin (mean ISI = T / spikes): ISI coefficient of
+   variation, lag-1 ISI correlation, Fano factor of counts in windows of several
+   lengths; the spike-rate histogram; dark and hot pixels (local outliers) and the
+   extreme rate quantiles. Standard errors over pixels.
+6. Distance D per model: the mean over statistics of the mean over bins of
+   |model - real| / combined standard error (~0.8 = indistinguishable).
+
+Writes DIR/realism.csv (every statistic per bin per source), DIR/realism.png (one
+panel per statistic), DIR/realism.json and DIR/realism.md (distances, what they
+mean, how motion and light were treated).
+
+Models are NAME[:RESET] with NAME in {models} and RESET 'interval' (Algorithm 2:
+reset at the end of the interval) or 'crossing' (reset when the charge crosses
+the threshold; needs a sensor model that has it).
+"""
+EXAMPLES = """\
+examples:
+  render2spike realism ../shared/data/real/uhsr.npz --out out/realism
+  render2spike realism rec.dat --layout vidar-raw --out out/r --models elssim:interval,isi
+  render2spike realism rec.npz --out out/r --profile mycam.npz --seed 3 --max-intervals 2000
+  render2spike realism big.dat --out out/r --crop 100,100 --models elssim,isi
+"""
+
+
+def register(sub) -> None:
+    from sensor.models import MODELS
+    from sensor.realism import DEFAULT_MODELS
+    from sensor.spikefile import LAYOUTS
+    p = sub.add_parser("realism", help=HELP, description=DESCRIPTION.format(models=", ".join(MODELS)),
+                       epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recording", metavar="RECORDING", help="real spike recording (.npz, .dat, .h5)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument("--profile", default="vidar-default", metavar="NAME|PATH",
+                   help="sensor profile of the models; its centred window is used for a smaller recording "
+                        "(default: vidar-default)")
+    p.add_argument("--models", default=",".join(DEFAULT_MODELS), metavar="LIST",
+                   help=f"comma-separated NAME[:RESET] (default: {','.join(DEFAULT_MODELS)})")
+    p.add_argument("--layout", choices=sorted(LAYOUTS), help="layout of RECORDING (default: detected)")
+    p.add_argument("--height", type=int, help="frame height of a headerless .dat RECORDING")
+    p.add_argument("--width", type=int, help="frame width of a headerless .dat RECORDING")
+    p.add_argument("--crop", metavar="H,W", help="use the centred H x W window of RECORDING (faster; default: all)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every simulation (default: 0)")
+    p.add_argument("--max-intervals", type=int, default=2000, metavar="N",
+                   help="use the first N intervals of RECORDING (memory and time grow with N x H x W; default 2000)")
+    p.add_argument("--segments", type=int, default=4, help="segments of the stationarity count test (default 4)")
+    p.add_argument("--alpha", type=float, default=0.01, help="level of the stationarity tests (default 0.01)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing report in DIR")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import time
+
+    import numpy as np
+
+    from render2spike.commands.simulate import fit_profile
+    from sensor.errors import InputError
+    from sensor.profile import SensorProfile
+    from sensor.realism import parse_models, realism, supports_reset, write_report
+    from sensor.spikefile import read_spikes_with_meta
+
+    t0 = time.perf_counter()
+    say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a folder", path=out)
+    if (out / "realism.json").exists() and not args.overwrite:
+        raise InputError("already holds a realism report; pass --overwrite to replace it", path=out)
+    if not 0 < args.alpha < 1:
+        raise InputError(f"must be in (0, 1); got {args.alpha}", field="--alpha")
+    specs = parse_models(args.models)
+    if args.max_intervals < 8:
+        raise InputError(f"must be >= 8; got {args.max_intervals}", field="--max-intervals")
+    spikes, meta = read_spikes_with_meta(args.recording, layout=args.layout, height=args.height, width=args.width)
+    T, H, W = spikes.shape
+    say(f"read {args.recording} (layout '{meta['layout']}'): {T} intervals of {H} x {W}, mean "
+        f"{float(spikes.mean()) if spikes.size else 0.0:.4f} spikes per pixel per interval")
+    if args.crop:
+        try:
+            ch, cw = (int(v) for v in args.crop.split(","))
+        except ValueError as exc:
+            raise InputError(f"must be H,W (two integers); got '{args.crop}'", field="--crop") from exc
+        if not (0 < ch <= H and 0 < cw <= W):
+            raise InputError(f"{ch} x {cw} does not fit in the {H} x {W} recording", field="--crop")
+        top, left = (H - ch) // 2, (W - cw) // 2
+        spikes = spikes[:, top:top + ch, left:left + cw]
+        H, W = ch, cw
+        say(f"note: using the centred {H} x {W} window (rows {top}:{top + H}, cols {left}:{left + W}; --crop)")
+    if T > args.max_intervals:
+        say(f"note: using the first {args.max_intervals} of {T} intervals (--max-intervals)")
+        spikes = spikes[:args.max_intervals]
+    if spikes.shape[0] < 4 * args.segments:
+        raise InputError(f"has {spikes.shape[0]} intervals; the report needs at least {4 * args.segments}",
+                         path=args.recording)
+    profile = fit_profile(SensorProfile.load(args.profile), (H, W), say)
+    usable = [s for s in specs if supports_reset(profile, s.reset)]
+    for s in specs:
+        if s not in usable:
+            say(f"warning: skipping model '{s.label}': this version of the sensor model has no '{s.reset}' reset")
+    if not usable:
+        raise InputError("none of the models can be simulated by this version", field="--models")
+    result = realism(np.ascontiguousarray(spikes), profile, usable, seed=args.seed, segments=args.segments,
+                     alpha=args.alpha, progress=say)
+    result.notes["skipped_models"] = [s.label for s in specs if s not in usable]
+    result.notes["layout"] = meta["layout"]
+    paths = write_report(result, out, recording=str(args.recording))
+    say("distance D per model (mean |model - real| in standard errors; ~0.8 = indistinguishable):")
+    for m, d in result.distances.items():
+        say(f"  {m:<18} D = {d['D']:7.2f}   " + "  ".join(f"{g} {v:.1f}" for g, v in d["per_statistic"].items()))
+    say(f"wrote {', '.join(str(p) for p in paths.values())} in {time.perf_counter() - t0:.1f} s")
+    return 0

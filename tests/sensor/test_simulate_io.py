@@ -1,0 +1,66 @@
+"""`render2spike simulate` input paths: streamed .npz, memory-mapped .npy, prefetched frames, bit counting."""
+
+import numpy as np
+import pytest
+
+import sensor
+from render2spike.cli import main
+from render2spike.commands.simulate import RateSource, _NpzMember
+from sensor.spikefile import count_bits
+
+
+@pytest.fixture
+def prof(tmp_path):
+    p = sensor.SensorProfile.synthetic(8, 16, threshold_e=40, dark_rate=0.01, prnu_sigma=0.05, seed=3)
+    return p, p.save(tmp_path / "cam.npz")
+
+
+def test_count_bits_matches_unpackbits():
+    b = np.random.default_rng(0).integers(0, 256, (37, 19), dtype=np.uint8)
+    assert count_bits(b) == int(np.unpackbits(b).sum())
+    assert count_bits(np.zeros((0, 4), np.uint8)) == 0
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_npz_member_streams_rows_in_chunks(tmp_path, compressed):
+    a = np.random.default_rng(1).uniform(0, 5, (23, 4, 5)).astype(np.float64)
+    (np.savez_compressed if compressed else np.savez)(tmp_path / "a.npz", rate_e=a)
+    m = _NpzMember(tmp_path / "a.npz", "rate_e")
+    assert m.shape == a.shape
+    parts = [m.rows(i, min(i + 7, 23)) for i in range(0, 23, 7)]
+    m.close()
+    np.testing.assert_array_equal(np.concatenate(parts), a)
+
+
+def test_npy_is_memory_mapped(tmp_path):
+    np.save(tmp_path / "r.npy", np.ones((5, 4, 3), np.float32))
+    src = RateSource(tmp_path / "r.npy")
+    assert isinstance(src.rate, np.memmap) and src.per_interval and src.n == 5
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz"])
+def test_per_interval_input_matches_python_api(tmp_path, prof, suffix):
+    p, path = prof
+    # 2.5 simulator blocks of per-interval rates: crosses block boundaries and ends in a partial block
+    sim = sensor.SpikeSimulator(p, "elssim", 0, per_interval=True)
+    T = int(2.5 * sim.block)
+    rate = np.random.default_rng(2).uniform(0, 3, (T, 8, 16)).astype(np.float32)
+    f = tmp_path / ("r" + suffix)
+    np.save(f, rate) if suffix == ".npy" else np.savez_compressed(f, rate_e=rate)
+    rc = main(["simulate", str(f), "--out", str(tmp_path / "s.npz"), "--profile", str(path), "--seed", "4",
+               "--quiet", "--chunk", "5"])
+    assert rc == 0
+    spikes = sensor.read_spikes(tmp_path / "s.npz")
+    np.testing.assert_array_equal(spikes, sensor.simulate(rate, p, "elssim", seed=4))
+
+
+def test_frames_prefetch_gives_the_same_chunks(tmp_path):
+    p = sensor.SensorProfile.load("vidar-default").window(0, 0, 4, 6)
+    phi = np.random.default_rng(5).uniform(1e15, 2e16, (7, 4, 6)).astype(np.float32)
+    sensor.write_frames(tmp_path / "fr", phi, np.arange(7) * 1e-3)
+    a = list(RateSource(tmp_path / "fr").chunks(p, 3, prefetch=True))
+    b = list(RateSource(tmp_path / "fr").chunks(p, 3, prefetch=False))
+    assert [x[0].shape[0] for x in a] == [3, 3, 1]
+    for (ra, ta), (rb, tb) in zip(a, b):
+        np.testing.assert_array_equal(ra, rb)
+        np.testing.assert_array_equal(ta, tb)
