@@ -407,6 +407,14 @@ class RSIRConfig:
       rate of the input itself, floored at ``1e-5`` spikes per interval); inputs
       are multiplied and outputs divided by ``s``, so one model serves every
       light level (``intensity_scale`` is then unused).
+
+    ``cumulative``: step ``t`` sees the running mean of windows ``0..t``
+    (``t + 1`` windows' worth of spikes) instead of window ``t`` alone, and the
+    fusion mask starts near "take the current step" (its last bias at +2) and
+    the denoiser's output convolution at zero. The untrained network then
+    already outputs (nearly) the TFP over all the windows, and
+    training learns corrections to it (RSIR feeds single windows; see
+    docs/recon.md, deviations).
     """
 
     n_windows: int = 10
@@ -428,6 +436,7 @@ class RSIRConfig:
     learned_wavelet: bool = False
     normalise: str = "fixed"
     norm_level: float = 0.5
+    cumulative: bool = False
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -503,9 +512,14 @@ class RSIRNet(nn.Module):
         else:
             self.dwt, self.idwt = HaarDWT(), HaarIDWT()
         self.fusion = TemporalFusion(cfg.mask_width)
+        if cfg.cumulative:
+            nn.init.constant_(self.fusion.mask[-2].bias, 2.0)
         self.denoiser = Denoiser(cfg.width, cfg.res_blocks, cfg.attn_depth, cfg.heads, cfg.attn_window,
                                  cfg.mlp_ratio, cfg.attn_dim)
         self.refine = Refine(cfg.mask_width)
+        if cfg.cumulative:  # start as the identity on the fused bands
+            nn.init.zeros_(self.denoiser.out.weight)
+            nn.init.zeros_(self.denoiser.out.bias)
 
     @property
     def multiple(self) -> int:
@@ -555,6 +569,9 @@ class RSIRNet(nn.Module):
         _check_4d(windows, "windows")
         H, W = windows.shape[-2:]
         s = self.input_scale(windows)
+        if self.config.cumulative:
+            n = torch.arange(1, windows.shape[1] + 1, device=windows.device, dtype=windows.dtype)
+            windows = windows.cumsum(dim=1) / n.view(1, -1, 1, 1)
         x = self._pad(windows * s)
         feats = self._pad(self.map_features(maps, windows, s))
         out = {"nim": [], "fusion": [], "denoise": [], "refine": [], "denoise_bands": [], "scale": s}

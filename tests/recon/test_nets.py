@@ -166,3 +166,19 @@ def test_mean_normalisation_makes_the_network_light_level_equivariant():
     assert torch.all(fixed.input_scale(w) == 10.0)
     with pytest.raises(InputError, match="normalise"):
         RSIRConfig(normalise="median")
+
+
+def test_cumulative_network_starts_as_the_full_window_tfp():
+    """cumulative=True: step t sees the mean of windows 0..t; the untrained net returns ~ the mean of all windows."""
+    cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8, mask_width=8,
+                          normalise="mean", cumulative=True)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(2)
+        net = RSIRNet(cfg).eval()
+    w = torch.rand(2, 10, 16, 16, generator=_gen(8)) * 0.1
+    out = net.reconstruct(w)
+    full = w.mean(dim=1, keepdim=True)
+    last = w[:, -1:]
+    # the fusion mask starts at sigmoid(2) = 0.88 on the current (cumulative) step: close to the full mean,
+    # far closer than to the last window alone
+    assert (out - full).abs().mean() < 0.1 * (out - last).abs().mean()
