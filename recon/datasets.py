@@ -48,7 +48,7 @@ DAVIS_SPLIT_FILE = DATA_DIR / "davis2017_split.json"
 #: the synthetic sensor drawn when no profile is named (values of the bundled vidar-default profile, see
 #: docs/sensor.md: threshold 2000 e-, dark 94 Hz = 0.0047 events per 50 us interval, log spread 0.37,
 #: PRNU sigma 0.058, 0.1 % hot pixels)
-DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC)
+DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC, reset="crossing")  # vidar-default's reset (docs/sensor.md)
 _KIND_KEYS = {"davis": 1, "rendered": 2, "sdmd": 3}
 
 
@@ -121,13 +121,14 @@ def parse_hw(text, field_name: str) -> tuple[int, int]:
 def uniform_profile(height: int, width: int) -> SensorProfile:
     """The default sensor where none is known (real recordings without a profile): every pixel alike.
 
-    The vidar-like threshold, refractory time and the *mean* dark rate of
+    The vidar-like threshold, refractory time, reset and the *mean* dark rate of
     :data:`DEFAULT_SYNTHETIC`, with no PRNU, no dark-rate spread and no hot
     pixels (nothing drawn at random: the pixels' real fixed pattern is unknown).
     """
     d = DEFAULT_SYNTHETIC
     return SensorProfile.synthetic(height, width, threshold_e=d["threshold_e"], dark_rate=d["dark_rate"],
-                                   refractory_s=d["refractory_s"], name=f"recon-uniform-{height}x{width}")
+                                   refractory_s=d["refractory_s"], reset=d["reset"],
+                                   name=f"recon-uniform-{height}x{width}")
 
 
 def resolve_profile(spec: str | SensorProfile | None, height: int, width: int, seed: int = 0) -> SensorProfile:

@@ -415,6 +415,14 @@ class RSIRConfig:
     already outputs (nearly) the TFP over all the windows, and
     training learns corrections to it (RSIR feeds single windows; see
     docs/recon.md, deviations).
+
+    ``linearise``: before the network, each window's spike rate ``r`` becomes
+    ``(r - p_dark) / (1 - p_dark) / g`` with the maps' dark-event probability
+    and PRNU gain (unchanged without maps): the expected dark spikes removed
+    and the gain divided out, which for the crossing reset (read-out ~ linear
+    in the light up to ~0.9 spikes per interval) is already close to the
+    target unit, so the network learns denoising rather than sensor physics.
+    The normalisation scale still comes from the raw windows.
     """
 
     n_windows: int = 10
@@ -437,6 +445,7 @@ class RSIRConfig:
     normalise: str = "fixed"
     norm_level: float = 0.5
     cumulative: bool = False
+    linearise: bool = False
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -569,6 +578,14 @@ class RSIRNet(nn.Module):
         _check_4d(windows, "windows")
         H, W = windows.shape[-2:]
         s = self.input_scale(windows)
+        if self.config.linearise and maps is not None:
+            _check_4d(maps, "maps")
+            if maps.shape[0] != windows.shape[0] or maps.shape[-2:] != windows.shape[-2:]:
+                raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(windows.shape)}",
+                                 field="maps")
+            p = maps[:, 0:1].to(windows.dtype)
+            g = maps[:, 1:2].to(windows.dtype).clamp_min(0.05) if maps.shape[1] > 1 else 1.0
+            windows = (windows - p) / (1.0 - p) / g
         if self.config.cumulative:
             n = torch.arange(1, windows.shape[1] + 1, device=windows.device, dtype=windows.dtype)
             windows = windows.cumsum(dim=1) / n.view(1, -1, 1, 1)

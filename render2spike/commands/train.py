@@ -56,6 +56,9 @@ def register(subparsers) -> None:
     p.add_argument("--cumulative", action="store_true",
                    help="feed step t the running mean of windows 0..t (the untrained network outputs the full TFP; "
                         "see docs/recon.md); not with --init")
+    p.add_argument("--linearise", action="store_true",
+                   help="remove the expected dark spikes and divide by the PRNU gain before the network (see "
+                        "docs/recon.md); not with --init")
     p.add_argument("--normalise", choices=["mean", "fixed"],
                    help="input/output normalisation (default mean; see below); not with --init")
     p.add_argument("--width", type=int, help="channels of the denoiser (overrides the preset)")
@@ -86,14 +89,15 @@ def run(args) -> int:
     from sensor.errors import InputError
 
     given = [f"--{n.replace('_', '-')}" for n in SIZE_FLAGS + ("size", "normalise") if getattr(args, n) is not None]
-    given += ["--cumulative"] if args.cumulative else []
+    given += [f for f, on in (("--cumulative", args.cumulative), ("--linearise", args.linearise)) if on]
     if args.init and given:
         raise InputError(f"--init takes the network layout from the checkpoint; drop {', '.join(given)}",
                          field="--init")
     if args.resume and given:
         raise InputError(f"--resume continues the stored network; drop {', '.join(given)}", field="--resume")
     ds = build_datasets(args.data, split="train", model=args.noise_model, seed=args.seed)
-    net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative)
+    net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
+                             linearise=args.linearise)
     for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:
