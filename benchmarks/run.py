@@ -4,6 +4,7 @@ One command::
 
     python benchmarks/run.py                 # full table (a few minutes on 2 cores)
     python benchmarks/run.py --quick         # smoke run (0.2 s of camera time, small reference)
+    python benchmarks/run.py --reset interval crossing --models elssim   # elssim under both pixel resets
 
 writes ``benchmarks/results/benchmark.md`` and ``benchmark.csv``.
 
@@ -114,6 +115,8 @@ def run_one(cfg: dict) -> dict:
     if cfg.get("threads"):
         os.environ["RENDER2SPIKE_THREADS"] = str(cfg["threads"])
     profile = _profile(cfg["profile"])
+    if cfg.get("reset"):
+        profile = profile.replace(reset=cfg["reset"])
     model, impl, lux = cfg["model"], cfg["implementation"], float(cfg["lux"])
     duration = float(cfg["duration_s"])
     jit_s = _warmup(profile, model, impl)
@@ -133,8 +136,16 @@ def run_one(cfg: dict) -> dict:
     nbytes = 0
     i0 = 0
     kf_per_int = profile.interval_s * KEYFRAME_HZ
-    while i0 < scene.n_keyframes:
-        frames, ts = scene.chunk(i0, CHUNK_KEYFRAMES + (1 if i0 == 0 else 0))
+    per_interval = cfg.get("input") == "per_interval"
+    if per_interval:  # one rate per interval (no timestamps), generated a block at a time (not timed)
+        sim = SpikeSimulator(profile, model, seed=1, implementation=impl, per_interval=True)
+    while (i0 < n_int_target) if per_interval else (i0 < scene.n_keyframes):
+        if per_interval:
+            n = min(sim.block, n_int_target - i0)
+            frames = np.stack([scene.frame_at((i0 + m + 0.5) * profile.interval_s) for m in range(n)])
+            ts = None
+        else:
+            frames, ts = scene.chunk(i0, CHUNK_KEYFRAMES + (1 if i0 == 0 else 0))
         i0 += frames.shape[0]
         t = time.perf_counter()
         for blk in sim.iter_feed_packed(frames, ts):
@@ -147,7 +158,7 @@ def run_one(cfg: dict) -> dict:
             t = time.perf_counter()
         wall += time.perf_counter() - t
         del frames
-        if n_int >= n_int_target:
+        if n_int >= n_int_target and not per_interval:
             break
     t = time.perf_counter()
     blk = sim.finish_packed()
@@ -165,7 +176,8 @@ def run_one(cfg: dict) -> dict:
     del kf_per_int
     steps = n_int * H * W
     return {
-        "model": model, "implementation": sim.implementation, "lux": lux,
+        "model": model, "reset": profile.reset if model == "elssim" else "", "implementation": sim.implementation,
+        "lux": lux,
         "rate_e_mean": float(lux_to_rate_e(lux, profile)), "threshold_e": profile.threshold_e,
         "intervals": n_int, "camera_s": n_int * profile.interval_s, "wall_s": wall,
         "pixel_steps_per_s": steps / wall, "realtime_factor": n_int * profile.interval_s / wall,
@@ -175,6 +187,109 @@ def run_one(cfg: dict) -> dict:
         "jit_s": jit_s, "threads": int(os.environ.get("RENDER2SPIKE_THREADS", "0")) or _nthreads(),
         "block_intervals": sim.block, "profile": profile.name,
     }
+
+
+# ------------------------------------------------------------- `render2spike simulate` end to end vs the kernel
+_WRAP = ("import json, resource, subprocess, sys, time; t = time.perf_counter(); "
+         "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
+         "print(json.dumps({'rc': r.returncode, 'wall_s': w, 'err': r.stderr[-2000:], "
+         "'peak_rss_mib': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}))")
+
+
+def _cli(inp: Path, out: Path, profile: str) -> dict:
+    """Run ``python -m render2spike simulate`` in a child; wall time and the child's peak RSS."""
+    cmd = [sys.executable, "-m", "render2spike", "simulate", str(inp), "--out", str(out), "--profile", profile,
+           "--seed", "1", "--quiet"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-c", _WRAP, *cmd], capture_output=True, text=True, cwd=str(ROOT), env=env)
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    if res["rc"] != 0:
+        raise RuntimeError(f"render2spike simulate {inp} failed:\n{res['err']}")
+    out.unlink(missing_ok=True)
+    return res
+
+
+def _make_frames(folder: Path, profile, lux: float, duration_s: float) -> Path:
+    """The benchmark scene's keyframes (1 kHz) as a frames folder (Phi [e-/(s m^2)] in float32 EXR)."""
+    from sensor import photoelectron_rate
+    from sensor.frames import frame_filename, write_frame, write_manifest
+    scene = MovingScene(profile, lux, seed=0, duration_s=duration_s)
+    per_phi = float(photoelectron_rate(np.ones(1), profile)[0])  # e-/interval per unit Phi
+    entries = []
+    for i in range(scene.n_keyframes):
+        write_frame(folder / frame_filename(i), scene.frame(i) / per_phi, time_s=i * scene.dt)
+        entries.append({"file": frame_filename(i), "time_s": i * scene.dt})
+    write_manifest(folder, profile.height, profile.width, entries, profile={"name": profile.name})
+    return folder
+
+
+def _subset(src: Path, dst: Path, n: int) -> Path:
+    """A frames folder with the first n frames of ``src`` (hard links, no copies)."""
+    from sensor.frames import read_frames, write_manifest
+    seq = read_frames(src)
+    dst.mkdir(parents=True, exist_ok=True)
+    entries = seq.manifest["frames"][:n]
+    for e in entries:
+        os.link(src / e["file"], dst / e["file"])
+    write_manifest(dst, *seq.shape, entries, profile=seq.manifest.get("profile"))
+    return dst
+
+
+def _make_npy(path: Path, profile, lux: float, duration_s: float) -> Path:
+    """One rate per interval [e-/interval] (T, H, W) float32 .npy, written block by block."""
+    scene = MovingScene(profile, lux, seed=0, duration_s=duration_s)
+    T = int(round(duration_s / profile.interval_s))
+    arr = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(T,) + profile.shape)
+    for m in range(T):
+        arr[m] = scene.frame_at((m + 0.5) * profile.interval_s)
+    arr.flush()
+    del arr
+    return path
+
+
+def cli_rows(profile_name: str, frames_durations, npy_durations, lux: float = 5.0, tmpdir=None, say=print):
+    """End-to-end `render2spike simulate` vs the kernel on the same input, per input kind and duration."""
+    prof = _profile(profile_name)
+    rows = []
+    with tempfile.TemporaryDirectory(dir=tmpdir) as d:
+        d = Path(d)
+        t = time.perf_counter()
+        full = _make_frames(d / "frames_full", prof, lux, max(frames_durations))
+        say(f"cli: wrote {max(frames_durations):g} s of frames in {time.perf_counter() - t:.0f} s (not timed)")
+        tiny = _subset(full, d / "tiny", 2)
+        startup = _cli(tiny, d / "o.dat", profile_name)["wall_s"]  # imports, JIT cache load, 20 intervals
+        for dur in frames_durations:
+            n = int(round(dur * KEYFRAME_HZ)) + 1
+            src = full if n == len(json.loads((full / "frames.json").read_text())["frames"]) else \
+                _subset(full, d / f"frames_{dur:g}", n)
+            rows.append(_cli_row("frames folder", src, d, profile_name, prof, lux, dur, "keyframes", startup))
+            say(_cli_say(rows[-1]))
+        for dur in npy_durations:
+            src = _make_npy(d / f"rate_{dur:g}.npy", prof, lux, dur)
+            rows.append(_cli_row(".npy per interval", src, d, profile_name, prof, lux, dur, "per_interval", startup))
+            say(_cli_say(rows[-1]))
+            src.unlink()
+    return rows
+
+
+def _cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup):
+    e2e = _cli(src, d / "o.dat", profile_name)
+    ker = _subprocess({"profile": profile_name, "sink": "disk", "threads": 0, "model": "elssim",
+                       "implementation": "fast", "lux": lux, "duration_s": dur, "input": kernel_input,
+                       "tmpdir": str(d)})
+    steps = ker["intervals"] * prof.height * prof.width
+    return {"input": kind, "camera_s": dur, "intervals": ker["intervals"], "e2e_wall_s": e2e["wall_s"],
+            "e2e_pixel_steps_per_s": steps / e2e["wall_s"], "e2e_peak_rss_mib": e2e["peak_rss_mib"],
+            "startup_s": startup, "kernel_wall_s": ker["wall_s"], "kernel_pixel_steps_per_s": ker["pixel_steps_per_s"],
+            "kernel_peak_rss_mib": ker["peak_rss_mib"], "e2e_vs_kernel": ker["wall_s"] / e2e["wall_s"],
+            "e2e_vs_kernel_after_startup": ker["wall_s"] / max(e2e["wall_s"] - startup, 1e-9)}
+
+
+def _cli_say(r):
+    return (f"cli {r['input']:18s} {r['camera_s']:g} s: end to end {r['e2e_wall_s']:.2f} s "
+            f"({r['e2e_peak_rss_mib']:.0f} MiB RSS), kernel {r['kernel_wall_s']:.2f} s "
+            f"({r['kernel_peak_rss_mib']:.0f} MiB) -> {r['e2e_vs_kernel']:.2f}x the kernel's throughput "
+            f"({r['e2e_vs_kernel_after_startup']:.2f}x after {r['startup_s']:.1f} s start-up)")
 
 
 def _nthreads():
@@ -222,9 +337,9 @@ def _fmt(x, nd=2):
     return f"{x:.{nd}f}"
 
 
-def write_tables(rows, mem_rows, meta, out_dir: Path):
+def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
     out_dir.mkdir(parents=True, exist_ok=True)
-    cols = ["model", "implementation", "lux", "rate_e_mean", "intervals", "wall_s", "pixel_steps_per_s",
+    cols = ["model", "reset", "implementation", "lux", "rate_e_mean", "intervals", "wall_s", "pixel_steps_per_s",
             "realtime_factor", "speedup_vs_reference", "spikes_per_pixel_interval", "peak_traced_mib", "peak_rss_mib",
             "jit_s", "threads"]
     buf = io.StringIO()
@@ -233,6 +348,13 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
     for r in rows:
         wr.writerow(r)
     write_text_atomic(out_dir / "benchmark.csv", buf.getvalue())
+    if cli_rows_:
+        buf = io.StringIO()
+        wr = csv.DictWriter(buf, fieldnames=list(cli_rows_[0]))
+        wr.writeheader()
+        for r in cli_rows_:
+            wr.writerow(r)
+        write_text_atomic(out_dir / "benchmark_cli.csv", buf.getvalue())
     lines = ["# render2spike sensor benchmark", "",
              f"Command: `{meta['command']}`  ", f"Date: {meta['date']}  ",
              f"Machine: {meta['machine']['cpu']}, {meta['machine']['cores']} cores; Python {meta['machine']['python']}, "
@@ -245,12 +367,13 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
              f"Reference: {meta['ref_intervals']} intervals, throughput extrapolated (cost per interval is constant). "
              "Real time = 2.0e9 pixel-steps/s (400 x 250 at 20 kHz). JIT/cache-load time is excluded from the "
              "throughput and shown in `jit_s`.", "",
-             "| model | impl | lux | e-/interval | intervals | wall s | pixel-steps/s | x real time | speed-up vs ref "
-             "| spikes/px/interval | peak traced MiB | peak RSS MiB | jit s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| model | reset | impl | lux | e-/interval | intervals | wall s | pixel-steps/s | x real time "
+             "| speed-up vs ref | spikes/px/interval | peak traced MiB | peak RSS MiB | jit s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append("| " + " | ".join([
-            r["model"], r["implementation"] + (" (extrap.)" if r.get("extrapolated") else ""), _fmt(r["lux"], 1),
+            r["model"], r.get("reset", ""), r["implementation"] + (" (extrap.)" if r.get("extrapolated") else ""),
+            _fmt(r["lux"], 1),
             _fmt(r["rate_e_mean"]), str(r["intervals"]), _fmt(r["wall_s"]), _fmt(r["pixel_steps_per_s"]),
             _fmt(r["realtime_factor"], 3), _fmt(r.get("speedup_vs_reference", "")), _fmt(r["spikes_per_pixel_interval"], 4),
             _fmt(r["peak_traced_mib"], 1), _fmt(r["peak_rss_mib"], 0), _fmt(r["jit_s"])]) + " |")
@@ -260,6 +383,17 @@ def write_tables(rows, mem_rows, meta, out_dir: Path):
         for r in mem_rows:
             lines.append(f"| {r['camera_s']:.2f} | {r['intervals']} | {r['wall_s']:.2f} | {r['peak_traced_mib']:.1f} | "
                          f"{r['peak_rss_mib']:.0f} |")
+    if cli_rows_:
+        lines += ["", "`render2spike simulate` end to end (a child process: imports, JIT cache load, reading the input, "
+                  "writing a .dat) vs the kernel on the same input in the same run (elssim, fast, 5 lux; kernel = "
+                  "`SpikeSimulator.iter_feed_packed` on in-memory input, output written to disk, JIT excluded). "
+                  "Start-up = the command on a 2-frame folder.", "",
+                  "| input | camera s | intervals | end-to-end s | kernel s | throughput vs kernel | after start-up "
+                  "| peak RSS end-to-end MiB | peak RSS kernel MiB |", "|---|---|---|---|---|---|---|---|---|"]
+        for r in cli_rows_:
+            lines.append(f"| {r['input']} | {r['camera_s']:g} | {r['intervals']} | {r['e2e_wall_s']:.2f} | "
+                         f"{r['kernel_wall_s']:.2f} | {r['e2e_vs_kernel']:.2f} | {r['e2e_vs_kernel_after_startup']:.2f} | "
+                         f"{r['e2e_peak_rss_mib']:.0f} | {r['kernel_peak_rss_mib']:.0f} |")
     lines.append("")
     write_text_atomic(out_dir / "benchmark.md", "\n".join(lines))
     return out_dir / "benchmark.md"
@@ -272,10 +406,19 @@ def main(argv=None):
     ap.add_argument("--lux", type=float, nargs="+", default=list(LUX))
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--profile", default="vidar-default")
+    ap.add_argument("--reset", nargs="+", choices=("interval", "crossing"), default=None,
+                    help="pixel reset(s) for elssim (default: the profile's own; vidar-default: crossing); "
+                         "ideal and isi have one pixel and run once")
     ap.add_argument("--sink", choices=("disk", "none"), default="disk")
     ap.add_argument("--threads", type=int, default=0, help="worker threads of the fast path (default: all CPUs)")
     ap.add_argument("--no-memory-scan", action="store_true", help="skip the peak-memory-vs-duration rows")
     ap.add_argument("--quick", action="store_true", help="smoke run: 0.2 s of camera time, 100 reference intervals")
+    ap.add_argument("--no-cli", action="store_true", help="skip `render2spike simulate` end to end vs the kernel")
+    ap.add_argument("--cli-frames", type=float, nargs="+", default=[0.25, 0.5, 1.0],
+                    help="camera seconds of the frames-folder inputs (default 0.25 0.5 1)")
+    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.025, 0.05, 0.1],
+                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s; default 0.025 0.05 0.1)")
+    ap.add_argument("--only-cli", action="store_true", help="only the end-to-end section")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--one", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
@@ -287,20 +430,26 @@ def main(argv=None):
     load_before = tuple(round(x, 2) for x in os.getloadavg())
     common = {"profile": a.profile, "sink": a.sink, "threads": a.threads}
     rows = []
-    for model in a.models:
-        for lux in a.lux:
-            ref = _subprocess(dict(common, model=model, implementation="reference", lux=lux,
-                                   duration_s=float(intervals_to_seconds(a.ref_intervals))))
-            ref["extrapolated"] = True
-            fast = _subprocess(dict(common, model=model, implementation="fast", lux=lux, duration_s=a.duration))
-            fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]
-            ref["speedup_vs_reference"] = 1.0
-            for r in (fast, ref):
-                rows.append(r)
-                print(f"{r['model']:7s} {r['implementation']:9s} {lux:6g} lux: {r['pixel_steps_per_s']:.3e} "
-                      f"pixel-steps/s, x{r['realtime_factor']:.3f} real time, speed-up "
-                      f"{r['speedup_vs_reference']:.1f}, peak {r['peak_traced_mib']:.0f} MiB traced / "
-                      f"{r['peak_rss_mib']:.0f} MiB RSS, jit {r['jit_s']:.2f} s", flush=True)
+    if a.only_cli:
+        a.models, a.no_memory_scan = [], True
+    # resets alternate at each lux, so that their rows are measured close together (ratios under a drifting load)
+    runs = [(m, lux, r) for m in a.models for lux in a.lux
+            for r in ((a.reset or [None]) if m == "elssim" else [None])]
+    for model, lux, reset in runs:
+        ref = _subprocess(dict(common, model=model, reset=reset, implementation="reference", lux=lux,
+                               duration_s=float(intervals_to_seconds(a.ref_intervals))))
+        ref["extrapolated"] = True
+        fast = _subprocess(dict(common, model=model, reset=reset, implementation="fast", lux=lux,
+                                duration_s=a.duration))
+        fast["speedup_vs_reference"] = fast["pixel_steps_per_s"] / ref["pixel_steps_per_s"]
+        ref["speedup_vs_reference"] = 1.0
+        for r in (fast, ref):
+            rows.append(r)
+            print(f"{r['model']:7s} {r['reset']:8s} {r['implementation']:9s} {lux:6g} lux: "
+                  f"{r['pixel_steps_per_s']:.3e} "
+                  f"pixel-steps/s, x{r['realtime_factor']:.3f} real time, speed-up "
+                  f"{r['speedup_vs_reference']:.1f}, peak {r['peak_traced_mib']:.0f} MiB traced / "
+                  f"{r['peak_rss_mib']:.0f} MiB RSS, jit {r['jit_s']:.2f} s", flush=True)
     mem_rows = []
     if not a.no_memory_scan and "elssim" in a.models:
         for d in (a.duration / 2, a.duration, a.duration * 2):
@@ -308,6 +457,11 @@ def main(argv=None):
             mem_rows.append(r)
             print(f"memory scan: {d:g} s camera -> peak {r['peak_traced_mib']:.1f} MiB traced, "
                   f"{r['peak_rss_mib']:.0f} MiB RSS", flush=True)
+    cli = []
+    if not a.no_cli:
+        if a.quick:
+            a.cli_frames, a.cli_npy = [0.05, 0.1], [0.01, 0.02]
+        cli = cli_rows(a.profile, sorted(a.cli_frames), sorted(a.cli_npy), say=lambda m: print(m, flush=True))
     prof = _profile(a.profile)
     meta = {"command": "python benchmarks/run.py " + " ".join(argv if argv is not None else sys.argv[1:]),
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": _machine(), "load_before": load_before,
@@ -315,7 +469,7 @@ def main(argv=None):
             "height": prof.height, "width": prof.width, "threshold_e": prof.threshold_e,
             "sink": "a file on disk" if a.sink == "disk" else "nowhere (dropped)", "duration_s": a.duration,
             "ref_intervals": a.ref_intervals}
-    path = write_tables(rows, mem_rows, meta, Path(a.out))
+    path = write_tables(rows, mem_rows, meta, Path(a.out), cli)
     print(f"wrote {path} and {path.with_suffix('.csv')}")
     return 0
 

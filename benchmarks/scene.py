@@ -65,7 +65,10 @@ class MovingScene:
         self.n_keyframes = int(round(duration_s * KEYFRAME_HZ)) + 1
 
     def frame(self, i: int) -> np.ndarray:
-        t = i * self.dt
+        return self.frame_at(i * self.dt)
+
+    def frame_at(self, t: float) -> np.ndarray:
+        """The rate image [e-/interval] at time ``t`` [s] (0 <= t <= duration)."""
         oy, ox = VELOCITY_PX_S[0] * t, VELOCITY_PX_S[1] * t
         iy, ix = int(oy), int(ox)
         fy, fx = np.float32(oy - iy), np.float32(ox - ix)

@@ -680,19 +680,31 @@ def load_checkpoint(path, device="cpu"):
     if not path.is_file():
         raise InputError("checkpoint file does not exist", path=path)
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        # weights_only: plain containers and tensors only -- loading a checkpoint never runs code from it
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise InputError(f"not a readable PyTorch checkpoint ({exc})", path=path) from exc
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"not a readable PyTorch checkpoint (truncated, corrupt or not a checkpoint: {first})",
+                         path=path) from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise InputError(f"not a render2spike RSIR checkpoint (format '{ckpt.get('format') if isinstance(ckpt, dict) else type(ckpt).__name__}', "
                          f"expected '{CHECKPOINT_FORMAT}')", path=path, field="format")
     if int(ckpt.get("version", 0)) > CHECKPOINT_VERSION:
         raise InputError(f"checkpoint version {ckpt['version']} is newer than this reader ({CHECKPOINT_VERSION})",
                          path=path, field="version")
-    model = RSIRNet(RSIRConfig.from_dict(ckpt["config"]))
+    for key in ("config", "model"):
+        if not isinstance(ckpt.get(key), dict):
+            raise InputError("missing or not a mapping", path=path, field=key)
+    try:
+        model = RSIRNet(RSIRConfig.from_dict(ckpt["config"]))
+    except (TypeError, ValueError, KeyError, RuntimeError) as exc:
+        raise InputError(f"the stored network config is unusable ({type(exc).__name__}: {exc})", path=path,
+                         field="config") from exc
     try:
         model.load_state_dict(ckpt["model"])
-    except RuntimeError as exc:
-        raise InputError(f"weights do not fit the stored network config ({exc})", path=path, field="model") from exc
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        first = " ".join(ln.strip() for ln in str(exc).strip().splitlines()[:2])[:300]
+        raise InputError(f"weights do not fit the stored network config ({first})", path=path,
+                         field="model") from exc
     dev = pick_device(device) if isinstance(device, str) else device
     return model.to(dev).eval(), ckpt

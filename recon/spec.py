@@ -42,7 +42,9 @@ training item, geometric mean for test items; default 5-50), ``ipf``
 ``rendered`` only: ``stride`` (intervals between items), ``spikes`` (stored
 spike file inside each folder), ``lux`` (rescale the rendered light to this
 reference illuminance: a value or LO-HI, log-uniform per training item;
-``split=train`` also draws a random crop offset per item).
+``split=train`` also draws a random crop offset per item). A path may also be
+a ``render2spike dataset`` folder (``manifest.json``): its finished samples'
+frames folders, in order.
 
 ``sdmd`` only: ``height``, ``width``, ``drop_columns`` (.dat layout; defaults
 250, 400, 0; per-scene meta.json overrides), ``split_file`` (default

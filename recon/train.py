@@ -168,6 +168,8 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         if not last.is_file():
             raise InputError("--resume: no checkpoints/last.pt in this run directory", path=out_dir)
         model, ckpt = load_checkpoint(last, device)
+        if "step" not in ckpt:
+            raise InputError("missing required field", path=last, field="step")
         step = int(ckpt["step"])
         stored = json.loads((out_dir / "config.json").read_text()) if (out_dir / "config.json").is_file() else {}
         if stored.get("train"):

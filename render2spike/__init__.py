@@ -4,8 +4,48 @@ Stages (data flows one way): ``render2spike`` (scenes, Mitsuba rendering,
 photometry, CLI, pipelines, studies) -> ``sensor`` (spike models, profiles,
 calibration, spike files) -> ``recon`` (reconstruction, datasets, training,
 metrics).
+
+The Python API of this stage (imported lazily: ``import render2spike`` does not load Mitsuba)::
+
+    import render2spike as r2s
+    scene = r2s.load_scene("rotating_disk", ["render.spp=16"], lux=5.0, duration_s=0.02)
+    result = r2s.render_scene(scene, "out/frames")           # frames folder (resumable, locked)
+    summary = r2s.run_pipeline("rotating_disk", "out/demo")   # render -> spikes -> preview -> summary
+
+* :func:`load_scene` (scene file or bundled name -> validated :class:`Scene`)
+* :func:`render_scene` (:class:`Scene` -> frames folder; returns :class:`RenderResult`)
+* :func:`run_pipeline` (the ``render2spike run`` command as a function)
+* :func:`simulate_frames` (frames folder -> bit-packed spikes with :class:`sensor.SpikeSimulator`)
+* :func:`bundled_scenes` (names of the scenes shipped with the package)
+* :class:`SceneRenderer` (render single frames at any time)
 """
 
 from sensor.fileio import package_version as _pv
 
 __version__ = _pv()
+
+_EXPORTS = {
+    "load_scene": "render2spike.render.scene",
+    "Scene": "render2spike.render.scene",
+    "bundled_scenes": "render2spike.render.scene",
+    "render_scene": "render2spike.render.job",
+    "RenderResult": "render2spike.render.job",
+    "SceneRenderer": "render2spike.render.renderer",
+    "run_pipeline": "render2spike.pipeline",
+    "simulate_frames": "render2spike.pipeline",
+}
+
+__all__ = ["__version__", *_EXPORTS]
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        import importlib
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'render2spike' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -6,8 +6,13 @@ and exposes ``register(subparsers)``; this file discovers them. A module's
 arguments and returns an exit code.
 
 Errors derived from :class:`sensor.errors.Render2SpikeError` are printed as one
-line (``render2spike: error: ...``) with exit code 2; set
-``RENDER2SPIKE_DEBUG=1`` to see the traceback instead.
+line (``render2spike: error: ...``) with exit code 2; a full disk says which file
+it was writing; set ``RENDER2SPIKE_DEBUG=1`` to see the traceback instead.
+SIGTERM is handled like Ctrl-C (SIGINT): the command stops, temp files are
+removed, locks released, exit code 130 (143 for SIGTERM).
+
+The top-level help lists every registered command with its one-line help,
+generated from the modules, so it never goes stale.
 """
 
 from __future__ import annotations
@@ -17,21 +22,38 @@ import importlib
 import os
 import pkgutil
 import sys
+import zipfile
 
 from sensor.errors import Render2SpikeError
 
-EPILOG = """\
-stages and units:
-  render     scene file -> irradiance frames (OpenEXR; Phi [e-/(s m^2)], E [lux])
-  simulate   frames or rate array [e-/interval] -> spike stream (T_r = 50 us per interval)
-  run        render -> simulate -> preview -> summary, in one command
-  calibrate  dark + flat-field spike recordings -> sensor profile
-  info       what a spike, frames or profile file holds
-  convert    spike file of any layout -> .dat, container .npz or HDF5
-  realism    a real recording against each spike model: statistics, figure, distances
+EPILOG_TAIL = """
+units: Phi [e-/(s m^2)] and E [lux] in frames; rates in expected photoelectrons per
+interval; one interval T_r = 50 us; thresholds in electrons.
+seeds: --seed is always the spike seed (the noise of the simulated camera);
+--render-seed seeds the Monte Carlo render where a command renders.
 
-Run `render2spike COMMAND --help` for each command's options.
+examples:
+  render2spike run rotating_disk --out out/demo
+  render2spike simulate out/demo/frames --out spikes.dat --seed 1
+  render2spike info out/demo/spikes.npz
+
+Run `render2spike COMMAND --help` for each command's options and examples.
 """
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that every cleanup path (temp files, locks) runs."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
+def command_list(sub) -> str:
+    """"commands:" followed by one line per registered command (name and its help)."""
+    rows = [(a.dest, a.help or "") for a in sub._choices_actions]
+    w = max((len(n) for n, _ in rows), default=0)
+    return "commands:\n" + "\n".join(f"  {n:<{w}}  {h}" for n, h in rows) + "\n"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,17 +61,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="render2spike",
         description="Physically based rendering-to-spike-camera simulator.",
-        epilog=EPILOG,
+        usage="render2spike [-h] [--version] COMMAND [OPTIONS]",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"render2spike {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", help=argparse.SUPPRESS,  # listed in the epilog
+                                prog="render2spike")
     for mod in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if mod.name.startswith("_"):
             continue
         module = importlib.import_module(f"render2spike.commands.{mod.name}")
         if hasattr(module, "register"):
             module.register(sub)
+    parser.epilog = command_list(sub) + EPILOG_TAIL
     return parser
 
 
@@ -59,6 +83,11 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
+    import signal
+    import threading
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args) or 0)
     except Render2SpikeError as exc:
@@ -66,15 +95,29 @@ def main(argv=None) -> int:
             raise
         print(f"render2spike: error: {exc}", file=sys.stderr)
         return 2
-    except (OSError, ValueError) as exc:  # last resort: a file or value problem we did not anticipate
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, MemoryError) as exc:
+        # last resort: a file or value problem we did not anticipate
         if os.environ.get("RENDER2SPIKE_DEBUG"):
             raise
-        print(f"render2spike: error: {type(exc).__name__}: {exc} (set RENDER2SPIKE_DEBUG=1 for the traceback)",
-              file=sys.stderr)
+        from sensor.fileio import is_disk_full
+        if is_disk_full(exc):
+            where = getattr(exc, "filename", None) or getattr(args, "out", None)
+            print(f"render2spike: error: disk full while writing {where or 'the output'} (no space left on "
+                  "device); free some space and rerun", file=sys.stderr)
+        else:
+            print(f"render2spike: error: {type(exc).__name__}: {exc} (set RENDER2SPIKE_DEBUG=1 for the traceback)",
+                  file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("render2spike: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        term = isinstance(exc, _Terminated)
+        print(f"render2spike: {'terminated' if term else 'interrupted'}; unfinished files were removed",
+              file=sys.stderr)
+        return 143 if term else 130
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+        from sensor.fileio import remove_live_temps
+        remove_live_temps()  # temp files of writes a signal cut short before their own cleanup ran
 
 
 if __name__ == "__main__":  # pragma: no cover

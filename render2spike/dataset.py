@@ -382,7 +382,9 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
         info = {"format": DATASET_FORMAT + "-sample", "version": DATASET_VERSION, "id": sid, "index": s.index,
                 "render_key": Path(frames_folder).name, "source": s.source, "sets": list(s.sets),
                 "duration_s": s.duration_s, "illuminance_lux": lux, "rendered_at_lux": ref_lux,
-                "profile": spec, "profile_id": prof.name, "model": model, "reset": reset, "model_spec": s.model,
+                "profile": spec, "profile_id": prof.name, "model": model,
+                "reset": getattr(prof, "reset", reset),  # the effective reset (a bare model follows the profile)
+                "model_spec": s.model,
                 "seed": s.seed, "preroll_intervals": s.preroll, "window_intervals": min(s.window, T),
                 "centers": list(centers), "n_intervals": int(T), "interval_s": prof.interval_s,
                 "threshold_e": prof.threshold_e, "height": prof.height, "width": prof.width,
@@ -393,7 +395,8 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
                      manifest={"illuminance_lux": lux, "dataset_sample": sid, "provenance": _det_provenance()})
         meta = {"format": SPIKES_FORMAT, "version": SPIKES_VERSION, "height": prof.height, "width": prof.width,
                 "n_intervals": int(T), "interval_s": prof.interval_s, "model": model, "implementation": "fast",
-                "profile_id": prof.name, "seed": s.seed, "source": "frames.json", "reset": reset,
+                "profile_id": prof.name, "seed": s.seed, "source": "frames.json",
+                "reset": getattr(prof, "reset", reset),
                 "preroll_intervals": s.preroll, "illuminance_lux": lux, "dataset_sample": sid,
                 "provenance": _det_provenance()}
         write_npz_deterministic(tmp / "spikes.npz", {

@@ -2,6 +2,7 @@
 
 ``OUT/frames/``   the rendered frames folder (resumable, see :mod:`render2spike.render.job`)
 ``OUT/spikes.npz`` the spike stream (bool (T, H, W) bit-packed, with metadata)
+``OUT/spikes.dat`` the same stream in the SpikeCV .dat layout (with ``dat=True``)
 ``OUT/preview.png`` ground-truth irradiance, one TFP window and the whole-clip TFP
 ``OUT/preview.gif`` TFP over consecutive windows (the clip as the camera would show it)
 ``OUT/summary.json``, ``OUT/summary.md``  spike rate, light level, frames, timings
@@ -102,17 +103,49 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
 
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
-                 log=print) -> dict:
-    """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary."""
+                 dat: bool = False, log=print) -> dict:
+    """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary.
+
+    ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). Rerunning into ``out``
+    resumes the render; an ``out`` whose summary records another scene, model, seed or profile is refused
+    (InputError) unless ``overwrite``.
+    """
+    from sensor.errors import InputError
     from sensor.spikefile import write_spikes
 
-    from .render.job import render_scene
+    from .render.job import render_scene, settings_of
     from .render.scene import load_scene
 
     out = Path(out)
     t0 = time.perf_counter()
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a folder", path=out, field="--out")
+    from sensor.lock import sweep_parts
+    sweep_parts(out, log=log)
     sc = load_scene(scene, sets, lux=lux, duration_s=duration_s, profile=profile)
-    res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, log=log)
+    old = None
+    if (out / "summary.json").is_file() and not overwrite:
+        try:
+            old = json.loads((out / "summary.json").read_text())
+        except (OSError, ValueError):
+            old = {}
+        from .render import backend
+        now = {"scene_hash": sc.content_hash(settings_of(sc, backend.mitsuba().variant())), "model": model,
+               "seed": seed, "profile": sc.profile.name}
+        diff = [k for k in now if old.get(k) != now[k]]
+        if diff:
+            raise InputError(f"holds a run with another {', '.join(diff)} ("
+                             + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)
+                             + "); pass --overwrite to replace it, or choose another --out", path=out)
+    created = not out.exists()
+    try:
+        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, log=log)
+    except BaseException:
+        if created:  # the render left nothing (it removes a frames folder it wrote nothing into): no empty OUT
+            import contextlib
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     t_render = time.perf_counter() - t0
 
     t1 = time.perf_counter()
@@ -122,6 +155,12 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
                  interval_s=prof.interval_s, model=model, profile_id=prof.name,
                  seed=seed, source=str(out / "frames"), extra={"scene": sc.name, "scene_hash": res.scene_hash,
                                                                "illuminance_lux": sc.illuminance_lux})
+    files = {}
+    if dat:
+        from sensor.spikefile import packed_to_dat
+        with atomic_path(out / "spikes.dat") as tmp:
+            packed_to_dat(spikes.packed, prof.height, prof.width).tofile(tmp)
+        files["dat"] = str(out / "spikes.dat")
     t_sim = time.perf_counter() - t1
 
     t2 = time.perf_counter()
@@ -138,6 +177,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     summary = {
         "scene": sc.name,
         "scene_file": str(sc.path),
+        "scene_hash": res.scene_hash,
         "illuminance_lux": sc.illuminance_lux,
         "duration_s": sc.duration_s,
         "profile": prof.name,
@@ -156,7 +196,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         "mean_focal_plane_phi_e_per_s_m2": phi_mean,
         "seconds": {"render": t_render, "simulate": t_sim, "preview": t_prev,
                     "total": time.perf_counter() - t0},
-        "files": {"frames": str(out / "frames"), "spikes": str(out / "spikes.npz"), **prev},
+        "files": {"frames": str(out / "frames"), "spikes": str(out / "spikes.npz"), **files, **prev},
         "provenance": provenance(stage="run"),
     }
     write_json_atomic(out / "summary.json", summary)

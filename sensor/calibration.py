@@ -30,6 +30,7 @@ from a base profile.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,7 +41,8 @@ from .fileio import provenance, write_json_atomic
 from .profile import SensorProfile
 from .spikefile import read_spikes
 from .flatfield import fit_flats, flat_level_stats
-from .theory import fit_hot_pixel
+from .calib_theory import crossing_hot_pixel_isi_moments
+from .theory import fit_hot_pixel, hot_pixel_isi_moments
 from .units import per_interval_to_hz
 
 #: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
@@ -80,6 +82,40 @@ def _as_recording(x, height, width, drop_columns, what, i):
         raise CalibrationError(f"{what} recording {i} must be (T >= 2, H, W) spikes; got shape {s.shape}",
                                path=None if isinstance(x, np.ndarray) else x)
     return s.astype(bool, copy=False)
+
+
+def _f(x):
+    """A float for JSON (None for NaN)."""
+    return None if not np.isfinite(x) else float(x)
+
+
+def hot_pixel_se(isis, mu, sigma, p_dark, moments):
+    """Delta-method standard errors of (mu_HP, sigma_HP) fitted to a hot pixel's dark ISIs.
+
+    The sampling covariance of the ISIs' (mean, sd) (empirical second and
+    fourth moments) is mapped through the inverse Jacobian of the exact moment
+    model ``moments(mu, sigma, p_dark) -> (mean, var)`` (central differences).
+    ISIs are treated as independent (exact for the interval reset; the crossing
+    reset's carried-over charge correlates them weakly).
+    """
+    isis = np.asarray(isis, np.float64)
+    n = isis.size
+    m2 = isis.var()
+    m4 = np.mean((isis - isis.mean()) ** 4)
+    cov = np.diag([m2 / n, max(m4 - m2 ** 2, 1e-12) / (4 * m2 * n)])
+
+    def ms(a, b):
+        mm, vv = moments(a, b, p_dark)
+        return np.array([mm, np.sqrt(max(vv, 0.0))])
+    sg = max(sigma, 1e-3)
+    J = np.column_stack([(ms(mu * 1.02, sg) - ms(mu * 0.98, sg)) / (0.04 * mu),
+                         (ms(mu, sg * 1.05) - ms(mu, sg * 0.95)) / (0.10 * sg)])
+    try:
+        Ji = np.linalg.inv(J)
+    except np.linalg.LinAlgError:
+        return np.nan, np.nan
+    c = Ji @ cov @ Ji.T
+    return float(np.sqrt(c[0, 0])), float(np.sqrt(c[1, 1]))
 
 
 def _isi_stats(trains: list[np.ndarray]):
@@ -164,34 +200,6 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     p_normal = np.where(hot, median_p, p_dark)
     mu_dc = -np.log1p(-np.clip(p_normal, 0.0, 1.0 - 1e-12))
 
-    # ---- hot pixels: ISI moments from the dark recordings
-    hot_idx = np.flatnonzero(hot)
-    hot_mu = np.zeros(shape, np.float64)
-    hot_sigma = np.zeros(shape, np.float64)
-    hot_n_isi = np.zeros(shape, np.int64)
-    if hot_idx.size:
-        trains = {j: [] for j in hot_idx}
-        for i, x in enumerate(dark_recs):
-            s = x if isinstance(x, np.ndarray) else _as_recording(x, H, Wd, drop_columns, "dark", i)
-            flat_s = s.reshape(s.shape[0], -1)[:, hot_idx]
-            for c, j in enumerate(hot_idx):
-                trains[j].append(np.flatnonzero(flat_s[:, c]))
-        from tqdm import tqdm
-        for c, j in enumerate(tqdm(hot_idx, desc="hot-pixel fits", unit="pixel", disable=not progress_bar)):
-            isi = _isi_stats(trains[j])
-            r, cc = np.unravel_index(j, shape)
-            hot_n_isi[r, cc] = isi.size
-            if isi.size >= 2:
-                m, v = float(isi.mean()), float(isi.var(ddof=1))
-                if isi.size >= min_hot_isis:
-                    mu, sg = fit_hot_pixel(m, v, p_dark=median_p)
-                else:
-                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=median_p)[0], 0.0
-            else:  # too few spikes for an ISI: use the excess rate
-                mu, sg = float(p_dark.reshape(-1)[j] - median_p), 0.0
-            hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
-        say(f"hot pixels: {hot_idx.size}")
-
     # ---- flat fields: reset, effective light per pixel, PRNU, threshold, sensitivity
     normal = ~hot
     if flat_lux is not None and len(flat_lux) != len(flat):
@@ -209,6 +217,45 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     var_mu = np.clip(p_normal, 1e-12, None) / (n_int * np.clip(1 - p_normal, 1e-12, None))
     fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
                     median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    # ---- hot pixels: ISI moments from the dark recordings
+    hot_idx = np.flatnonzero(hot)
+    hot_mu = np.zeros(shape, np.float64)
+    hot_sigma = np.zeros(shape, np.float64)
+    hot_n_isi = np.zeros(shape, np.int64)
+    hot_mu_se = np.full(shape, np.nan)
+    hot_sigma_se = np.full(shape, np.nan)
+    f_map = base.refractory_fraction.astype(np.float64)
+    if fit["reset"] == "crossing":
+        def moments(m_, s_, p_, f_):
+            return crossing_hot_pixel_isi_moments(m_, s_, p_, f_, n_bins=120)
+    else:
+        def moments(m_, s_, p_, f_):
+            return hot_pixel_isi_moments(m_, s_, p_)
+    if hot_idx.size:
+        trains = {j: [] for j in hot_idx}
+        for i, x in enumerate(dark_recs):
+            s = x if isinstance(x, np.ndarray) else _as_recording(x, H, Wd, drop_columns, "dark", i)
+            flat_s = s.reshape(s.shape[0], -1)[:, hot_idx]
+            for c, j in enumerate(hot_idx):
+                trains[j].append(np.flatnonzero(flat_s[:, c]))
+        from tqdm import tqdm
+        for c, j in enumerate(tqdm(hot_idx, desc="hot-pixel fits", unit="pixel", disable=not progress_bar)):
+            isi = _isi_stats(trains[j])
+            r, cc = np.unravel_index(j, shape)
+            hot_n_isi[r, cc] = isi.size
+            mom = functools.partial(moments, f_=float(f_map[r, cc]))
+            if isi.size >= 2:
+                m, v = float(isi.mean()), float(isi.var(ddof=1))
+                if isi.size >= min_hot_isis:
+                    mu, sg = fit_hot_pixel(m, v, p_dark=median_p, moments=mom)
+                    hot_mu_se[r, cc], hot_sigma_se[r, cc] = hot_pixel_se(isi, mu, sg, median_p, mom)
+                else:
+                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=median_p, moments=mom)[0], 0.0
+            else:  # too few spikes for an ISI: use the excess rate
+                mu, sg = float(p_dark.reshape(-1)[j] - median_p), 0.0
+            hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
+        say(f"hot pixels: {hot_idx.size} ({fit['reset']} reset)")
+
     gain = np.where(hot, 1.0, fit["gain"])
     gain = np.clip(gain, 0.05, None)
     use = np.array(fit["level_used"])
@@ -243,8 +290,9 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         "hot_pixels": int(hot.sum()),
         "hot_mu_median": float(np.median(hot_mu[hot])) if hot.any() else 0.0,
         "hot_sigma_median": float(np.median(hot_sigma[hot])) if hot.any() else 0.0,
-        "hot_mu_sigma": [[int(r), int(c), float(hot_mu[r, c]), float(hot_sigma[r, c]), int(hot_n_isi[r, c])]
-                         for r, c in zip(*np.nonzero(hot))],
+        "hot_mu_sigma_columns": ["row", "col", "mu_HP", "mu_HP_se", "sigma_HP", "sigma_HP_se", "dark_isis"],
+        "hot_mu_sigma": [[int(r), int(c), float(hot_mu[r, c]), _f(hot_mu_se[r, c]), float(hot_sigma[r, c]),
+                          _f(hot_sigma_se[r, c]), int(hot_n_isi[r, c])] for r, c in zip(*np.nonzero(hot))],
         "hot_min_isis": int(hot_n_isi[hot].min()) if hot.any() else 0,
         "prnu_std": float(gain[normal].std()),
         "prnu_se_median": float(np.median(fit["gain_se"][normal])),
@@ -261,7 +309,15 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
 
 
 def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) -> list[Path]:
-    """Write ``<stem>.json`` (numbers) and ``<stem>.png`` (dark-rate histogram, hot-pixel map, PRNU map, PRNU spread)."""
+    """Write ``<stem>.json`` (numbers) and ``<stem>.png`` (maps, uncertainty maps and per-level diagnostics).
+
+    Panels: dark-rate histogram; hot-pixel map (mu/sigma of each hot pixel are in
+    the JSON, ``hot_mu_sigma``); PRNU map; its standard-error map; PRNU
+    histogram; per-level information share (which levels were used and why);
+    per-level threshold estimates with error bars and the combined fit; lag-1
+    ISI correlation per level against the two resets' predictions; sensitivity
+    map (with ``--flat-lux``) or its standard-error summary.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -270,7 +326,8 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     out_stem = Path(out_stem)
     jpath = out_stem.with_suffix(".json")
     write_json_atomic(jpath, {"profile": profile.name, **report.to_dict(), "provenance": provenance()})
-    fig, ax = plt.subplots(2, 2, figsize=(11, 8))
+    n = report.numbers
+    fig, ax = plt.subplots(3, 3, figsize=(15, 12))
     hz = per_interval_to_hz(profile.dark_rate, profile.interval_s)
     normal = ~profile.hot_mask
     vals = hz[normal]
@@ -281,18 +338,71 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     ax[0, 0].set_ylabel("pixels")
     ax[0, 0].set_title(f"dark current (mean {vals.mean():.1f} Hz)")
     ax[0, 1].imshow(profile.hot_mask, cmap="gray_r", interpolation="nearest")
-    ax[0, 1].set_title(f"hot pixels ({int(profile.hot_mask.sum())})")
-    im = ax[1, 0].imshow(profile.prnu_gain, cmap="coolwarm", vmin=0.8, vmax=1.2)
-    ax[1, 0].set_title("PRNU gain")
-    fig.colorbar(im, ax=ax[1, 0])
+    ax[0, 1].set_title(f"hot pixels ({int(profile.hot_mask.sum())}): median mu_HP {n.get('hot_mu_median', 0):.3f}, "
+                       f"sigma_HP {n.get('hot_sigma_median', 0):.3f}", fontsize=9)
+    im = ax[0, 2].imshow(profile.prnu_gain, cmap="coolwarm", vmin=0.8, vmax=1.2)
+    ax[0, 2].set_title("PRNU gain")
+    fig.colorbar(im, ax=ax[0, 2])
+    if report.prnu_se is not None:
+        se = np.where(np.isfinite(report.prnu_se), report.prnu_se, np.nan)
+        im = ax[1, 0].imshow(se, cmap="viridis")
+        fig.colorbar(im, ax=ax[1, 0])
+        ax[1, 0].set_title(f"PRNU standard error (median {np.nanmedian(se[normal]):.4f})")
     g = profile.prnu_gain[normal]
     ax[1, 1].hist(g, bins=60, color="0.3")
     ax[1, 1].set_xlabel("PRNU gain")
     ax[1, 1].set_title(f"PRNU spread: std {g.std():.4f}")
+    share = n.get("level_information_share")
+    if share is not None:
+        rates = n.get("flat_mean_spike_rate", [])
+        used = n.get("level_used", [])
+        ax[1, 2].bar(range(len(share)), share, color=["tab:green" if u else "tab:red" for u in used])
+        ax[1, 2].set_xticks(range(len(share)), [f"{r:.3f}" for r in rates], fontsize=8)
+        ax[1, 2].set_xlabel("flat level: mean spikes per interval (green: used)")
+        ax[1, 2].set_ylabel("share of PRNU information")
+        ax[1, 2].set_title("which levels inform the PRNU map" + ("" if n.get("prnu_enough", True)
+                                                                   else " (NOT ENOUGH)"), fontsize=10)
+    tl = n.get("threshold_levels") or []
+    if tl:
+        xs = [t["level"] for t in tl if t["theta_e"] is not None]
+        ys = [t["theta_e"] for t in tl if t["theta_e"] is not None]
+        es = [t["se_e"] for t in tl if t["theta_e"] is not None]
+        ax[2, 0].errorbar(xs, ys, yerr=es, fmt="o", color="k", capsize=3)
+        th, ths = n["threshold_e"], n["threshold_se"]
+        ax[2, 0].axhspan(th - ths, th + ths, color="tab:blue", alpha=0.3)
+        ax[2, 0].axhline(th, color="tab:blue")
+        half = 4 * max(ths, 0.1 * th)
+        ax[2, 0].set_ylim(max(0.0, th - half), th + half)
+        ax[2, 0].set_xlabel("flat level index")
+        ax[2, 0].set_ylabel("threshold [e-]")
+        ax[2, 0].set_title(f"photon transfer: theta = {th:.0f} +- {ths:.0f} e-")
+    rl = n.get("reset_levels") or []
+    if rl:
+        idx = [i for i, r in enumerate(rl) if r.get("z") is not None]
+        rho = [rl[i]["rho"] for i in idx]
+        err = [1 / np.sqrt(max(rl[i]["n_pairs"], 1)) for i in idx]
+        ax[2, 1].errorbar(idx, rho, yerr=err, fmt="o", color="k", capsize=3, label="observed")
+        ax[2, 1].axhline(0.0, color="tab:orange", label="interval reset")
+        pc = [(i, r["rho_crossing"]) for i, r in enumerate(rl) if r.get("rho_crossing") is not None]
+        if pc:
+            ax[2, 1].plot(*zip(*pc), "s", color="tab:purple", label="crossing reset (predicted)")
+        ax[2, 1].legend(fontsize=8)
+        ax[2, 1].set_xlabel("flat level index")
+        ax[2, 1].set_ylabel("lag-1 ISI correlation")
+        conf = n.get("reset_confidence")
+        ax[2, 1].set_title(f"reset: {n.get('reset')}" + (f" (confidence {conf:.4f})" if conf is not None else ""))
+    if report.sensitivity is not None:
+        im = ax[2, 2].imshow(report.sensitivity, cmap="magma")
+        fig.colorbar(im, ax=ax[2, 2])
+        ax[2, 2].set_title(f"sensitivity {n['sensitivity_e_per_lux']:.2f} +- {n['sensitivity_se']:.2f} "
+                           "e-/(lux interval)", fontsize=10)
+    else:
+        ax[2, 2].axis("off")
+        ax[2, 2].text(0.05, 0.5, "sensitivity: give --flat-lux", fontsize=11)
     fig.suptitle(f"calibration of {profile.name}: {report.n_dark} dark, {report.n_flat} flat recordings")
     fig.tight_layout()
     ppath = out_stem.with_suffix(".png")
     with atomic_path(ppath) as tmp:
-        fig.savefig(tmp, dpi=90)
+        fig.savefig(tmp, dpi=80)
     plt.close(fig)
     return [jpath, ppath]

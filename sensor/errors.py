@@ -67,5 +67,16 @@ class UnknownMethodError(Render2SpikeError, KeyError):
         return self.args[0]
 
 
+class DiskFullError(Render2SpikeError, OSError):
+    """The disk filled up while writing ``path`` (nothing half-written is left under its name)."""
+
+    def __init__(self, message: str, path=None):
+        self.path = None if path is None else Path(path)
+        Exception.__init__(self, message)
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
 class DependencyError(Render2SpikeError, ImportError):
     """An optional dependency (Mitsuba, libLLVM, PyTorch, Dask) is missing; says how to install it."""

@@ -229,6 +229,28 @@ if HAVE_NUMBA:
         return xi
 
     @_jit_inline
+    def _subtract_and_flag(R, w, i, lo, nk, c0, nt, rm, gd, limit, flag):
+        """Pass 1 of the ELSSim kernels (vectorised): subtract piece i's light from the targets ``rm``; flag the
+        pixels whose target is reached or whose ``guard`` (an event time, or a "must look" sentinel) is < ``limit``."""
+        if nk == 2:
+            w00 = w[i, 0, 0]
+            w01 = w[i, 0, 1]
+            R0 = R[lo, c0:c0 + nt]
+            R1 = R[lo + 1, c0:c0 + nt]
+            for t in range(nt):
+                r_ = rm[t] - (w00 * np.float64(R0[t]) + w01 * np.float64(R1[t]))
+                rm[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < limit)
+        else:
+            for t in range(nt):
+                s = 0.0
+                for r in range(nk):
+                    s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
+                r_ = rm[t] - s
+                rm[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < limit)
+
+    @_jit_inline
     def _lockstep(rng, xs, R, w, i, lo, nk, a, n, m0, c0, nt, gb, gc, omf, dinv, rem, dark_next, refr, guard,
                   out, l0v, slv, rmv, jdv, flag, idx):
         """Piece ``i`` of sub-chunk ``c0`` for every pixel, one interval at a time (see _elssim_tile)."""
@@ -316,25 +338,7 @@ if HAVE_NUMBA:
                 nk = nk_[i]
                 # ---- pass 1 (vectorised): subtract the piece's expected count; flag pixels that may spike
                 # (guard = dark_next, or -1 while the next interval is a refractory one)
-                rm = rem[c0:c1]
-                gd = guard[c0:c1]
-                if nk == 2:
-                    w00 = w[i, 0, 0]
-                    w01 = w[i, 0, 1]
-                    R0 = R[lo, c0:c1]
-                    R1 = R[lo + 1, c0:c1]
-                    for t in range(nt):
-                        r_ = rm[t] - (w00 * np.float64(R0[t]) + w01 * np.float64(R1[t]))
-                        rm[t] = r_
-                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < end)
-                else:
-                    for t in range(nt):
-                        s = 0.0
-                        for r in range(nk):
-                            s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
-                        r_ = rm[t] - s
-                        rm[t] = r_
-                        flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < end)
+                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], end, flag)
                 # ---- pass 2: the flagged pixels, event by event (compacted first: no branch per pixel)
                 cnt = 0
                 for t in range(nt):
@@ -525,21 +529,24 @@ if HAVE_NUMBA:
 
     @_jit
     def _crossing_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx, gb, gc, fr, mu, gain,
-                       hot_mu, hot_sigma, theta, rem, dark_next, blind, v, out):
+                       hot_mu, hot_sigma, theta, rem, dark_next, blind, guard, v, out):
         """``elssim`` with the crossing reset (see ELSSimCrossingFast): continuous firing times, no interval reset.
 
         Per non-hot pixel: ``rem`` is the light (expected photoelectrons) still to collect before the next firing,
         counted from the end of the last piece done, the target being a Gamma(k, 1) variate in the rescaled time
         Lambda(t) = int lambda (the time-rescaling of the photoelectron Poisson process); ``dark_next`` the time
-        [intervals] of the next dark event; ``blind`` the end of the blind time after the last firing.
+        [intervals] of the next dark event; ``blind`` the end of the blind time after the last firing; ``guard``
+        what pass 1 compares with the piece end: ``dark_next``, or -inf while the pixel is blind into the next
+        piece (so pass 1 reads two arrays, as the interval kernel does).
         """
         for p in range(p0, p1):
             if rem[p] != rem[p]:  # NaN: not drawn yet (the stream starts reset, not blind, at interval m0)
                 rem[p] = _gamma(rng, xs, gb[p], gc[p])
                 dark_next[p] = m0 + _exp_gap(rng, mu[p])
+                guard[p] = dark_next[p]
         for h in hot_idx:
             rem[h] = np.inf  # hot pixels never take the event path
-            dark_next[h] = np.inf
+            guard[h] = np.inf
         npc = start.size
         flag = np.zeros(SUB_PIXELS, np.uint8)
         idx = np.empty(SUB_PIXELS + 1, np.int64)
@@ -555,75 +562,77 @@ if HAVE_NUMBA:
                 lo = lo_[i]
                 nk = nk_[i]
                 # ---- pass 1 (vectorised): subtract the piece's light; flag pixels that may fire or start blind
-                rm = rem[c0:c1]
-                dn_ = dark_next[c0:c1]
-                bl_ = blind[c0:c1]
-                for t in range(nt):
-                    s = 0.0
-                    for r in range(nk):
-                        s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
-                    r_ = rm[t] - s
-                    rm[t] = r_
-                    flag[t] = np.uint8(r_ <= 0.0) | np.uint8(dn_[t] < fend) | np.uint8(bl_[t] > fa)
+                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], fend, flag)
                 cnt = 0
                 for t in range(nt):
                     idx[cnt] = t
                     cnt += flag[t]
-                # ---- pass 2: the flagged pixels, firing by firing, in continuous time
+                # ---- pass 2: the flagged pixels, firing by firing, in continuous time. Light is counted as
+                # Lambda_rel(t), the expected photoelectrons from the piece start to t: C(j) = j l0 + sl j (j-1) / 2
+                # at the start of interval j of the piece, linear inside it; G is the next firing's target.
                 for c_ in range(cnt):
                     p = c0 + idx[c_]
                     if rem[p] == np.inf:
                         continue  # hot pixel
                     s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
-                    rp = rem[p] + s  # undo pass 1: the light still needed, from the piece start
-                    pos = fa
-                    if blind[p] > fa:
-                        pos = blind[p]
+                    G = rem[p] + s  # undo pass 1: the target, from the piece start
+                    cn = n * l0 + sl * 0.5 * n * (n - 1)  # Lambda_rel(end)
                     dn = dark_next[p]
-                    if dn < pos:  # a dark event while blind is lost: the next one after the blind time
-                        dn = pos + _exp_gap(rng, mu[p])
+                    bp = blind[p]
+                    if bp > fa:  # blind at the piece start
+                        if dn < bp:  # a dark event while blind is lost: the next one after the blind time
+                            dn = bp + _exp_gap(rng, mu[p])
+                        if bp >= fend:  # blind through the whole piece: nothing collected
+                            rem[p] = G
+                            dark_next[p] = dn
+                            guard[p] = -np.inf
+                            continue
+                        jb = np.int64(math.floor(bp - fa))
+                        G += jb * l0 + sl * 0.5 * jb * (jb - 1) + (bp - fa - jb) * (l0 + sl * jb)  # light lost
+                    done = False
                     while True:
-                        if pos >= fend:  # blind past the piece: nothing collected here
-                            break
-                        j0 = np.int64(math.floor(pos - fa))
-                        if j0 > n - 1:
-                            j0 = n - 1
-                        lj = l0 + sl * j0
-                        left0 = lj * (fa + j0 + 1.0 - pos)  # light left in the current interval
-                        nrest = n - j0 - 1
-                        A = l0 + sl * (j0 + 1)
-                        tot = nrest * A + sl * 0.5 * nrest * (nrest - 1)  # light of the whole later intervals
-                        if rp <= left0:
-                            tl = pos + rp / lj
-                        elif nrest > 0 and tot >= rp - left0:
-                            rp2 = rp - left0
-                            x = _crossing(rp2, A, sl, nrest)
-                            cx = (x - 1) * A + sl * 0.5 * (x - 1) * (x - 2)
-                            lx = A + sl * (x - 1)
-                            fx = (rp2 - cx) / lx
-                            if fx > 1.0:
-                                fx = 1.0
-                            tl = fa + j0 + x + fx
-                        else:
+                        if G > cn:
+                            if dn >= fend:  # no firing in the rest of the piece
+                                break
                             tl = np.inf
-                        tau = tl if tl < dn else dn
-                        if tau >= fend:  # no firing in the rest of the piece
-                            rp -= left0 + tot
-                            break
+                        else:  # the interval where Lambda_rel reaches G, and the time inside it
+                            x = _crossing(G, l0, sl, n)
+                            lx = l0 + sl * (x - 1)
+                            fx = (G - ((x - 1) * l0 + sl * 0.5 * (x - 1) * (x - 2))) / lx
+                            tl = fa + (x - 1) + (fx if fx < 1.0 else 1.0)
+                        if dn < tl:  # a dark event first
+                            tau = dn
+                            jt = np.int64(math.floor(tau - fa))
+                            lt = jt * l0 + sl * 0.5 * jt * (jt - 1) + (tau - fa - jt) * (l0 + sl * jt)
+                        else:
+                            tau = tl
+                            jt = x - 1
+                            lt = G
                         mi = np.int64(math.floor(tau))
                         if mi >= end:
                             mi = end - 1
                         if mi < a:
                             mi = a
                         out[mi - m0, p >> 3] |= np.uint8(1 << (p & 7))
-                        rp = _gamma(rng, xs, gb[p], gc[p])  # the next target, counted from the end of the blind time
+                        g_new = _gamma(rng, xs, gb[p], gc[p])  # the next target, counted from the end of blindness
                         pos = tau + fr[p]
+                        blind[p] = pos
                         if dn <= pos:  # fired by it, or it falls in the blind time: lost, draw the next one
                             dn = pos + _exp_gap(rng, mu[p])
-                        blind[p] = pos
-                    rem[p] = rp
+                        if pos >= fend:  # blind into the next piece: it counts the new target from there
+                            rem[p] = g_new
+                            done = True
+                            break
+                        jp = np.int64(math.floor(pos - fa))
+                        if jp == jt:  # the blind time ends in the same interval: f * lambda of it is lost
+                            G = lt + fr[p] * (l0 + sl * jt) + g_new
+                        else:
+                            G = jp * l0 + sl * 0.5 * jp * (jp - 1) + (pos - fa - jp) * (l0 + sl * jp) + g_new
+                    if not done:
+                        rem[p] = G - cn
                     dark_next[p] = dn
-        # ---- hot pixels: event by event in continuous time (photoelectrons by exponential gaps)
+                    guard[p] = -np.inf if blind[p] > fend else dn
+        # ---- hot pixels: event by event in continuous time
         for i in range(npc):
             a = m0 + start[i]
             n = length[i]
@@ -638,28 +647,39 @@ if HAVE_NUMBA:
                     sp = blind[h] if blind[h] > m else m
                     vv = v[h]
                     while sp < m + 1.0:
-                        d = sp + _exp_gap(rng, mu[h])
+                        d = dark_next[h]
+                        if d < sp:  # fell in the blind time: lost (memoryless: the next one from sp)
+                            d = sp + _exp_gap(rng, mu[h])
+                            dark_next[h] = d
                         wend = d if d < m + 1.0 else m + 1.0
-                        t0 = sp
+                        L = wend - sp
+                        nph = _poisson(rng, xs, lam * L)  # photoelectrons in the window
                         tau = np.inf
-                        ta = t0 + _exp_gap(rng, lam)
-                        while True:
-                            tn = ta if ta < wend else wend
-                            if cur > 0.0 and vv + cur * (tn - t0) >= theta:
-                                tau = t0 + (theta - vv) / cur
-                                break
-                            vv = vv + cur * (tn - t0)
-                            if vv < 0.0:
-                                vv = 0.0
-                            t0 = tn
-                            if ta < wend:
-                                vv += gain[h]
-                                if vv >= theta:
-                                    tau = ta
+                        if vv + gain[h] * nph + (cur if cur > 0.0 else 0.0) * L < theta and \
+                                (cur >= 0.0 or vv + cur * L >= 0.0):
+                            # no firing and no clipping possible in the window: only the end charge matters
+                            vv = vv + gain[h] * nph + cur * L
+                        else:  # walk the arrivals (iid uniform times given their number), in time order
+                            arr = np.empty(np.int64(nph) + 1)
+                            for e in range(np.int64(nph)):
+                                arr[e] = sp + L * _uniform(xs)
+                            arr[np.int64(nph)] = wend
+                            arr[:np.int64(nph)].sort()
+                            t0 = sp
+                            for e in range(np.int64(nph) + 1):
+                                tn = arr[e]
+                                if cur > 0.0 and vv + cur * (tn - t0) >= theta:
+                                    tau = t0 + (theta - vv) / cur
                                     break
-                                ta = ta + _exp_gap(rng, lam)
-                            else:
-                                break
+                                vv = vv + cur * (tn - t0)
+                                if vv < 0.0:
+                                    vv = 0.0
+                                t0 = tn
+                                if e < nph:
+                                    vv += gain[h]
+                                    if vv >= theta:
+                                        tau = tn
+                                        break
                         if tau == np.inf and d < m + 1.0:
                             tau = d
                         if tau == np.inf:
@@ -671,6 +691,8 @@ if HAVE_NUMBA:
                         vv = 0.0
                         sp = tau + fr[h]
                         blind[h] = sp
+                        if dark_next[h] <= sp:
+                            dark_next[h] = sp + _exp_gap(rng, mu[h])
                     v[h] = vv
 
 
@@ -809,8 +831,11 @@ class ELSSimCrossingFast(_FastModel):
     exactly. Dark events are a Poisson process of rate mu_DC: exponential gaps, the
     pending one kept while it falls after the blind time (memoryless), redrawn from the
     end of the blind time otherwise. Hot pixels (a current within each interval, kept
-    >= 0) walk event by event: photoelectrons by exponential gaps, the current's
-    crossing solved linearly. Equal in distribution to the reference, never bitwise.
+    >= 0) draw the photoelectron count of each window (up to the next dark event or the
+    interval end); when neither a firing nor the clip at 0 is possible (charge plus all
+    photoelectrons plus the positive current stays below theta) only the end charge
+    matters, otherwise the arrival times (iid uniform given their number) are walked in
+    order and the current's crossing is solved linearly. Equal in distribution to the reference, never bitwise.
     No lock-step path: bright light costs one Gamma per firing.
     """
 
@@ -832,13 +857,14 @@ class ELSSimCrossingFast(_FastModel):
     def init_state(self) -> dict:
         n = self.n_pixels
         return {"m": 0, "rem": np.full(n, np.nan), "dark_next": np.full(n, np.inf), "blind": np.zeros(n),
-                "v": np.zeros(n)}
+                "guard": np.full(n, np.inf), "v": np.zeros(n)}
 
     def _tile(self, seg, state, rng, p0, p1, out):
         ti = p0 // TILE_PIXELS
         _crossing_tile(rng, _xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0,
                        p0, p1, self.hot_tiles[ti], self.gb, self.gc, self.fr, self.mu, self.gain, self.hot_mu,
-                       self.hot_sigma, self.theta, state["rem"], state["dark_next"], state["blind"], state["v"], out)
+                       self.hot_sigma, self.theta, state["rem"], state["dark_next"], state["blind"], state["guard"],
+                       state["v"], out)
 
 
 class IdealFast(_FastModel):

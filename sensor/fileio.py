@@ -4,12 +4,29 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import errno
 import json
 import os
 import platform
 import sys
 import tempfile
 from pathlib import Path
+
+
+#: temp files of atomic writes still in progress in this process (removed by :func:`remove_live_temps`)
+_LIVE_TEMPS: set = set()
+
+
+def remove_live_temps() -> list[Path]:
+    """Delete the temp files of atomic writes this process has not finished (the CLI calls this on abort,
+    for a signal that arrived before a writer's cleanup could run)."""
+    gone = []
+    for tmp in list(_LIVE_TEMPS):
+        with contextlib.suppress(OSError):
+            Path(tmp).unlink()
+            gone.append(Path(tmp))
+        _LIVE_TEMPS.discard(tmp)
+    return gone
 
 
 @contextlib.contextmanager
@@ -19,24 +36,47 @@ def atomic_path(path, suffix: str | None = None):
     Nothing half-written is ever left at ``path``: if the body raises, the
     temporary file is removed and ``path`` keeps its old content (or stays absent).
     ``suffix`` defaults to ``path``'s own suffix, so libraries that infer the
-    format from the extension (OpenEXR, numpy, PIL) keep working.
+    format from the extension (OpenEXR, numpy, PIL) keep working. The temp name
+    carries the writer's pid (``.STEM.part-PID-XXXX.ext``) so that
+    :func:`sensor.lock.sweep_parts` can remove those of killed writers. A full
+    disk raises :class:`~sensor.errors.DiskFullError` naming ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.part-", suffix=path.suffix if suffix is None else suffix,
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.part-{os.getpid()}-",
+                               suffix=path.suffix if suffix is None else suffix,
                                dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    _LIVE_TEMPS.add(tmp)
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the final file the usual permissions
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        if is_disk_full(exc):
+            from .errors import DiskFullError
+            raise DiskFullError(f"disk full while writing {path}", path=path) from exc
         raise
+    finally:
+        _LIVE_TEMPS.discard(tmp)
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what caused it) is a "no space left on device" / quota error."""
+    seen = 0
+    while exc is not None and seen < 5:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "No space left on device" in str(exc):
+            return True
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return False
 
 
 def write_text_atomic(path, text: str) -> Path:

@@ -11,13 +11,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special, stats
 
 from . import calib_theory as ct
 from .errors import CalibrationError
 from .theory import renewal_spike_rate
 
-RESETS = ("interval", "crossing")
 #: a level informs the PRNU map only where its expected spike count error is at least this many spikes
 #: (below it the read-out is deterministic, e.g. on a plateau of the interval reset's staircase, and the
 #: delta-method variance of the inverted rate is not valid)
@@ -27,6 +26,10 @@ MIN_COUNT_SD = 1.0
 #: staircase in light (flat on the plateaus, a jump at the steps), so neither the inversion nor its delta-method
 #: variance can be trusted
 MIN_SPREAD_INTERVAL = 0.3
+#: the photon-transfer root is searched within this factor of the base threshold
+SEARCH_FACTOR = 10.0
+#: relative standard error above which the threshold is reported as weakly identified
+WEAK_THRESHOLD = 0.2
 #: |z| for the reset decision's test of the interval reset (one-sided)
 RESET_Z = 3.9
 
@@ -41,6 +44,23 @@ class FlatLevel:
     times: np.ndarray  # spike interval indices, sorted by pixel then time
     starts: np.ndarray  # (P,) index of each pixel's first spike in ``times``
     counts: np.ndarray  # (P,) spikes per pixel
+
+    @property
+    def isi_rate(self) -> np.ndarray:
+        """(P,) spikes per interval as 1 / mean ISI: ``(N - 1) / (t_last - t_first)``.
+
+        Unbiased for the stationary rate of a renewal process started at a spike
+        (``N / T`` is low by about half a spike: the recording starts with the
+        pixel reset); ``N / T`` where a pixel has fewer than two spikes.
+        """
+        c = self.counts
+        has = c >= 2
+        if not has.any():
+            return c / self.T
+        first = self.times[np.where(has, self.starts, 0)]
+        last = self.times[np.where(has, self.starts + c - 1, 0)]
+        span = np.where(has, last - first, 1)
+        return np.where(has & (span > 0), (c - 1) / np.maximum(span, 1), c / self.T)
 
     def block_variance(self, n: int):
         """Per pixel (variance ddof=1, number of blocks) of sums of ``n`` consecutive read-out ISIs."""
@@ -110,14 +130,20 @@ def invert_rate(reset, rate, k, mu, f):
     ok = (r > p) & (r < 1)
     target = 1.0 / np.where(ok, r, 0.5)
     # start: mean ISI ~ k / lam + 1/2 + f (the read-out rounds the crossing time up), then Newton on the exact mean
-    lam = np.where(ok, k / np.maximum(target - 0.5 - f, 0.25), 0.0)
-    for _ in range(10):
-        lo = np.where(ok, lam, 1.0)
-        m0 = ct.interval_isi_moments(lo, k, p, f)[0]
-        m1 = ct.interval_isi_moments(lo * 1.001, k, p, f)[0]
+    lam = np.where(ok, k / np.maximum(target - 0.5 - f, 0.25), 0.0).astype(np.float64)
+    act = np.flatnonzero(ok)
+    for _ in range(12):  # Newton on the pixels not yet converged (mean and its derivative in one call)
+        if not act.size:
+            break
+        lo = lam[act]
+        mm = ct.interval_isi_moments(np.concatenate([lo, lo * 1.001]), np.tile(k[act], 2), np.tile(p[act], 2),
+                                     np.tile(f[act], 2))[0]
+        m0, m1 = mm[:act.size], mm[act.size:]
         d = (m1 - m0) / (lo * 0.001)
-        step = np.where(d < 0, (target - m0) / np.where(d < 0, d, -1.0), 0.0)
-        lam = np.where(ok, np.clip(lo + step, lo * 0.7, lo * 1.3), 0.0)
+        step = np.where(d < 0, (target[act] - m0) / np.where(d < 0, d, -1.0), 0.0)
+        new = np.clip(lo + step, lo * 0.7, lo * 1.3)
+        lam[act] = new
+        act = act[np.abs(new - lo) > 1e-9 * lo]
     return lam / k
 
 
@@ -128,12 +154,14 @@ def readout_moments(reset, x, k, mu, f):
     return ct.interval_isi_moments(x * k, k, -np.expm1(-mu), f)
 
 
-def light_variance(reset, x, k, mu, f, T, rate=None, var_mu=None):
+def light_variance(reset, x, k, mu, f, T, rate=None):
     """Delta-method variance of the inverted light ``x`` from a ``T``-interval recording, and the count sd.
 
     The read-out count over ``T`` intervals has variance ``T Var(U) / E[U]^3``
     (renewal CLT) plus a bounded boundary term (1/6 spike^2, the phase of the
-    window ends); ``Var(x) = Var(rate) / (d rate / d x)^2``.
+    window ends); ``Var(x) = Var(rate) / (d rate / d x)^2``. Returns (variance,
+    count sd [spikes], d x / d mu_DC): the last propagates the dark-rate
+    estimate's error, which all levels of a pixel share.
     """
     m, v = readout_moments(reset, x, k, mu, f)
     var_n = T * v / m ** 3 + 1.0 / 6.0
@@ -142,16 +170,16 @@ def light_variance(reset, x, k, mu, f, T, rate=None, var_mu=None):
         x + h - np.maximum(x - h, 0))
     with np.errstate(divide="ignore", invalid="ignore"):
         var_x = var_n / T ** 2 / d ** 2
-    if rate is not None and var_mu is not None:
-        # the inversion uses the pixel's estimated dark rate: propagate its error (shared by all levels)
+    dx = np.zeros(np.shape(var_x))
+    if rate is not None:
+        # the inversion uses the pixel's estimated dark rate, whose error is shared by all levels: its derivative
         e = np.maximum(0.02 * mu, 1e-9)
         dx = (invert_rate(reset, rate, k, mu + e, f) - invert_rate(reset, rate, k, np.maximum(mu - e, 0), f)) / (
             mu + e - np.maximum(mu - e, 0))
-        var_x = var_x + dx ** 2 * var_mu
     sd_n = np.sqrt(T * v / m ** 3)
     if reset == "interval":
         sd_n = np.where(np.sqrt(k) / np.maximum(x * k, 1e-12) >= MIN_SPREAD_INTERVAL, sd_n, 0.0)
-    return np.where(d > 0, var_x, np.inf), sd_n
+    return np.where(d > 0, var_x, np.inf), sd_n, dx
 
 
 # ----------------------------------------------------------------------------------------------------- reset
@@ -172,7 +200,7 @@ def test_reset(levels, normal, x_levels, theta, gain, mu, f):
     """
     mflat = normal.reshape(-1)
     per_level = []
-    zs, ws = [], []
+    zs = []
     ll_i = ll_c = 0.0
     for lv, x in zip(levels, x_levels):
         rho, npairs, npix = lv.lag1(mflat)
@@ -191,7 +219,6 @@ def test_reset(levels, normal, x_levels, theta, gain, mu, f):
             ll_c += -0.5 * ((rho - rc) / se) ** 2
         per_level.append(dict(rho=rho, n_pairs=npairs, z=float(z), rho_crossing=rc))
         zs.append(z)
-        ws.append(1.0)
     if not zs:
         return dict(reset=None, reset_z=None, reset_p_interval=None, reset_confidence=0.0, reset_levels=per_level)
     zc = float(np.sum(zs) / np.sqrt(len(zs)))
@@ -208,12 +235,14 @@ def test_reset(levels, normal, x_levels, theta, gain, mu, f):
 
 
 # -------------------------------------------------------------------------------------------------- PRNU
-def fit_gain(x, var_x, normal, iterations: int = 20):
+def fit_gain(x, var_x, normal, dx_dmu=None, var_mu=None, iterations: int = 20):
     """Weighted rank-1 fit ``x[l, i] = X_l g_i`` (weights ``1 / var_x``), gains normalised to mean 1.
 
     The paper's regression of each pixel's rate on the level mean, with each
     (level, pixel) weighted by the information it carries and the level means
-    fitted from the informative pixels only. Returns (gain (P,), se (P,), X (K,)).
+    fitted from the informative pixels only. The standard error adds the error
+    of the pixel's dark rate (``var_mu``), shared by all its levels through
+    ``dx_dmu`` (K, P). Returns (gain (P,), se (P,), X (K,)).
     """
     w = np.where(np.isfinite(var_x) & (var_x > 0), 1.0 / np.where(var_x > 0, var_x, 1.0), 0.0)
     w[:, ~normal] = 0.0
@@ -228,7 +257,11 @@ def fit_gain(x, var_x, normal, iterations: int = 20):
         c = g[normal].mean()
         g, X = g / c, X * c
     info = (w * X[:, None] ** 2).sum(axis=0)
-    se = np.where(info > 0, 1.0 / np.sqrt(np.where(info > 0, info, 1)), np.inf)
+    safe = np.where(info > 0, info, 1)
+    var = 1.0 / safe
+    if dx_dmu is not None and var_mu is not None:
+        var = var + ((w * X[:, None] * np.nan_to_num(dx_dmu)).sum(axis=0) / safe) ** 2 * var_mu
+    se = np.where(info > 0, np.sqrt(var), np.inf)
     return g, se, X
 
 
@@ -243,16 +276,21 @@ def _threshold_terms(reset, lv, normal, x, gain, mu, f, theta_pilot):
     cancel, since they no longer depend on the block length once ``n Var(U) >=
     0.5``.
     """
-    P = normal.size
-    k = theta_pilot / gain
-    m, v = readout_moments(reset, x, k, mu, f)
     if reset == "interval":
         obs, nb = lv.block_variance(1)
         return obs, 1, nb
+    k = theta_pilot / gain
+    v = readout_moments(reset, x, k, mu, f)[1]
     n = max(1, int(np.ceil(0.5 / float(np.median(v[normal])))))
     v1, nb1 = lv.block_variance(n)
     v4, nb4 = lv.block_variance(4 * n)
-    obs = np.where(nb4 >= 4, (v4 - v1) / (3 * n), np.nan)
+    # E[V_n] = n Var(U) + c N_b / (N_b - 1) (ddof=1 with the telescoped total; c the bounded phase term): remove
+    # the small difference of the c terms with c estimated from the intercept (4 V_n - V_4n) / 3, pooled
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a1, a4 = nb1 / (nb1 - 1.0), nb4 / (nb4 - 1.0)
+        good = normal & (nb4 >= 4)
+        c = float(np.nanmean(((4 * v1 - v4) / 3)[good])) if good.any() else 1.0 / 6.0
+        obs = np.where(nb4 >= 4, (v4 - v1 - c * (a4 - a1)) / (3 * n), np.nan)
     return obs, n, nb4
 
 
@@ -282,7 +320,7 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
         if ok.sum() < 10:
             continue
         idx = np.flatnonzero(ok)
-        terms.append(dict(level=l, idx=idx, obs=obs[idx], rate=lv.rate.reshape(-1)[idx], g=gain[idx], mu=mu[idx],
+        terms.append(dict(level=l, idx=idx, obs=obs[idx], rate=lv.isi_rate[idx], g=gain[idx], mu=mu[idx],
                           f=f[idx], n=n))
     if not terms:
         return None
@@ -314,15 +352,21 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
         return float(sum(t["c"] * np.sum(ratio(t, lt)) for t in ts))
 
     def solve(ts):
-        # bracket on a coarse grid of log theta, then Brent on the bracketing cell
-        grid = lt0 + np.linspace(-np.log(4), np.log(4), 9)
-        vals = [total(g, ts) for g in grid]
-        sgn = np.sign(vals)
-        cells = np.flatnonzero(sgn[:-1] != sgn[1:])
-        if not cells.size:
-            return None, None
-        c = cells[0]
-        lt = optimize.brentq(lambda v: total(v, ts), grid[c], grid[c + 1], xtol=2e-4)
+        # the sum increases with theta (less shot variance predicted, c_l > 0): walk from the pilot in factors of
+        # 2 towards the sign change (at most SEARCH_FACTOR away), then Brent on the bracket
+        a = lt0
+        fa = total(a, ts)
+        step = np.log(2.0) * (1 if fa < 0 else -1)
+        b = a
+        while True:
+            b = a + step
+            if abs(b - lt0) > np.log(SEARCH_FACTOR) + 1e-9:
+                return None, None
+            fb = total(b, ts)
+            if np.sign(fb) != np.sign(fa):
+                break
+            a, fa = b, fb
+        lt = optimize.brentq(lambda v: total(v, ts), min(a, b), max(a, b), xtol=2e-4)
         acc = np.zeros(P)
         for t in ts:
             acc[t["idx"]] += t["c"] * ratio(t, lt)  # a pixel's terms over levels are summed: they share mu, g
@@ -331,16 +375,133 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
 
     theta, se = solve(terms)
     if theta is None:
-        raise CalibrationError("the photon-transfer estimating equation has no root for theta within a factor 4 "
-                               f"of {theta_pilot:.0f} e-: the flat ISIs do not follow the {reset} reset's "
-                               "shot-noise law", field="--flat")
+        say(f"warning: the threshold is not identifiable from these flats (no root of the photon-transfer equation "
+            f"within a factor {SEARCH_FACTOR:g} of {theta_pilot:.0f} e-, {reset} reset); keeping the base threshold")
+        return dict(threshold_e=None, threshold_se=None, threshold_levels=[],
+                    threshold_note="not identifiable from these flats")
     per_level = []
     for t in terms:
         th_l, se_l = solve([t])
         per_level.append(dict(level=t["level"], theta_e=th_l, se_e=se_l, block_isis=t["n"],
                               pixels=int(t["idx"].size)))
     say(f"threshold: {theta:.0f} +- {se:.0f} e- ({reset} reset, {len(terms)} levels)")
-    return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level)
+    note = "ok"
+    if se > WEAK_THRESHOLD * theta:
+        note = (f"weakly identified (standard error {100 * se / theta:.0f} %): the delta-method error is only a "
+                "guide; record longer or dimmer flats (interval reset) or brighter ones (crossing reset)")
+        say("warning: threshold " + note)
+    return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note)
+
+
+def interval_isi_logpmf(n_max, lam, k, p_dark, f):
+    """log P(ISI = n), n = 1..n_max, per pixel (P, n_max), interval reset: ``S(n - 1) - S(n)``."""
+    n = np.arange(0, n_max + 1, dtype=np.float64)[None, :]
+    S = special.gammaincc(k[:, None], np.clip(lam[:, None] * (n - f[:, None]), 0, None)) * \
+        np.exp(n * np.log1p(-np.clip(p_dark, 0, 1 - 1e-16))[:, None])
+    S[:, 0] = 1.0
+    pmf = S[:, :-1] - S[:, 1:]
+    with np.errstate(divide="ignore"):
+        return np.log(np.clip(pmf, 1e-300, None))
+
+
+def fit_threshold_interval_ml(levels, normal, x_levels, gain, mu, f, theta_pilot, informative=None,
+                              say=lambda m: None):
+    """Threshold theta [e-] under the interval reset by maximum likelihood on the whole ISI law.
+
+    Under the interval reset read-out ISIs are i.i.d. with the exact pmf
+    ``P(n) = S(n - 1) - S(n)``, ``S(n) = Q(k, lam (n - f)) (1 - p)^n``. For a
+    trial theta each pixel gets ``k_i = theta / g_i`` and the light that
+    reproduces its observed rate (so, as in photon transfer, only the *shape*
+    of the ISI law at the observed mean carries information on k: its shot-noise
+    width ``sqrt(k) / lam`` against the dark events' geometric tail, which the
+    variance alone cannot separate). The log-likelihood summed over pixels and
+    informative levels is maximised in log theta; standard error: the sandwich
+    ``sqrt(sum_i s_i^2) / |d^2 logL / d log theta^2|`` with per-pixel scores
+    ``s_i`` (pixels independent).
+    """
+    from scipy import optimize as opt
+    nf = normal.reshape(-1)
+    P = nf.size
+    terms = []
+    for l, (lv, x) in enumerate(zip(levels, x_levels)):
+        ok = nf & np.isfinite(x) & (x > 0) & (lv.counts >= 3)
+        if informative is not None:
+            ok &= informative[l]
+        if ok.sum() < 10:
+            continue
+        pid = np.repeat(np.arange(P), lv.counts)
+        d = np.diff(lv.times)
+        same = pid[1:] == pid[:-1]
+        d, dp = d[same], pid[1:][same]
+        sel = ok[dp]
+        d, dp = d[sel], dp[sel]
+        idx = np.flatnonzero(ok)
+        row = np.full(P, -1)
+        row[idx] = np.arange(idx.size)
+        n_max = int(d.max())
+        H = np.bincount(row[dp] * n_max + (d - 1), minlength=idx.size * n_max).reshape(idx.size, n_max)
+        terms.append(dict(level=l, idx=idx, H=H, n_max=n_max, rate=lv.isi_rate[idx], g=gain[idx],
+                          mu=mu[idx], f=f[idx]))
+    if not terms:
+        return None
+    cache = {}
+
+    def pix_ll(t, lam, k):
+        lp = interval_isi_logpmf(t["n_max"], lam, k, -np.expm1(-t["mu"]), t["f"])
+        return (t["H"] * lp).sum(axis=1)
+
+    def loglik_pix(lt):
+        # profile likelihood: each pixel's light maximises its own likelihood (Newton in log lam from the
+        # rate-inverted start); pinning the light to the noisy observed rate would bias theta low, since a
+        # misplaced ISI peak is best explained by a wider (lower-k) law
+        key = round(float(lt), 12)
+        if key not in cache:
+            acc = np.zeros(P)
+            for t in terms:
+                k = np.exp(lt) / t["g"]
+                lam = np.maximum(invert_rate("interval", t["rate"], k, t["mu"], t["f"]) * k, 1e-9)
+                e = 1e-3
+                for _ in range(5):
+                    a, b, c = pix_ll(t, lam * np.exp(-e), k), pix_ll(t, lam, k), pix_ll(t, lam * np.exp(e), k)
+                    d1, d2 = (c - a) / (2 * e), (c - 2 * b + a) / e ** 2
+                    step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
+                    lam = lam * np.exp(np.clip(step, -0.1, 0.1))
+                acc[t["idx"]] += pix_ll(t, lam, k)
+            cache[key] = acc
+        return cache[key]
+
+    lt0 = np.log(theta_pilot)
+    span = np.log(SEARCH_FACTOR)
+    res = opt.minimize_scalar(lambda v: -loglik_pix(v).sum(), bounds=(lt0 - span, lt0 + span), method="bounded",
+                              options=dict(xatol=1e-4))
+    lt = float(res.x)
+    if abs(lt - lt0) > span - 1e-3:
+        say(f"warning: the threshold is not identifiable from these flats (the likelihood peaks at the edge of "
+            f"the search, a factor {SEARCH_FACTOR:g} from {theta_pilot:.0f} e-); keeping the base threshold")
+        return dict(threshold_e=None, threshold_se=None, threshold_levels=[],
+                    threshold_note="not identifiable from these flats")
+    h = 0.01
+    lp, l0, lm = loglik_pix(lt + h), loglik_pix(lt), loglik_pix(lt - h)
+    score = (lp - lm) / (2 * h)
+    curv = (lp.sum() - 2 * l0.sum() + lm.sum()) / h ** 2
+    theta = float(np.exp(lt))
+    se = float(theta * np.sqrt(np.sum(score ** 2)) / abs(curv)) if curv < 0 else float("inf")
+    say(f"threshold: {theta:.0f} +- {se:.0f} e- (interval reset, maximum likelihood, {len(terms)} levels)")
+    note = "ok"
+    if se > WEAK_THRESHOLD * theta:
+        note = (f"weakly identified (standard error {100 * se / theta:.0f} %): record longer flats at levels "
+                "where the ISI spreads over several intervals")
+        say("warning: threshold " + note)
+    per_level = [dict(level=t["level"], theta_e=None, se_e=None, block_isis=1, pixels=int(t["idx"].size))
+                 for t in terms]
+    return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note,
+                threshold_method="maximum likelihood (interval reset)")
+
+
+def _threshold(reset, levels, normal, x, gain, mu, f, theta, informative, say):
+    if reset == "interval":
+        return fit_threshold_interval_ml(levels, normal, x, gain, mu, f, theta, informative=informative, say=say)
+    return fit_threshold(reset, levels, normal, x, gain, mu, f, theta, informative=informative, say=say)
 
 
 # -------------------------------------------------------------------------------------------------- driver
@@ -357,7 +518,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     var_mu = None if var_mu is None else np.broadcast_to(var_mu, shape).reshape(-1)
     f = np.broadcast_to(f_ref, shape).reshape(-1).astype(np.float64)
     K = len(levels)
-    rates = np.stack([lv.rate.reshape(-1) for lv in levels])
+    rates = np.stack([lv.isi_rate for lv in levels])
     mean_rate = rates[:, nf].mean(axis=1)
     signal = (mean_rate > 2 * max(median_p, 1e-6)) & (mean_rate < 0.9)
     if not signal.any():
@@ -377,7 +538,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         count_sd = np.zeros(x.shape)
         for l in range(K):
             if signal[l]:
-                var_x[l], count_sd[l] = light_variance(r_use, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T)
+                var_x[l], count_sd[l], _ = light_variance(r_use, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T)
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
         gain, gain_se, X = fit_gain(x, var_x, nf)
         if reset is None and it == 0:
@@ -388,22 +549,22 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
                 say("warning: too few ISIs to test the reset; assuming the interval reset")
             say(f"reset: {decided} (combined z {rt['reset_z']}, confidence {rt['reset_confidence']:.4f})")
             continue
-        thr = fit_threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative=count_sd >= MIN_COUNT_SD,
-                            say=say)
-        if thr is not None:
+        thr = _threshold(decided, levels, normal, list(x), gain, mu, f, theta, count_sd >= MIN_COUNT_SD, say)
+        if thr is not None and thr["threshold_e"] is not None:
             theta = thr["threshold_e"]
     # final pass with the fitted theta
     k = theta / gain
     x = np.stack([invert_rate(decided, rates[l], k, mu, f) for l in range(K)])
     var_x = np.full(x.shape, np.inf)
     count_sd = np.zeros(x.shape)
+    dx_dmu = np.zeros(x.shape)
     for l in range(K):
         if signal[l]:
-            var_x[l], count_sd[l] = light_variance(decided, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T,
-                                                   rates[l], var_mu)
+            var_x[l], count_sd[l], dx_dmu[l] = light_variance(decided, np.maximum(x[l], 1e-9), k, mu, f,
+                                                              levels[l].T, rates[l])
     informative = count_sd >= MIN_COUNT_SD
     var_x = np.where(informative, var_x, np.inf)
-    gain, gain_se, X = fit_gain(x, var_x, nf)
+    gain, gain_se, X = fit_gain(x, var_x, nf, dx_dmu, var_mu)
     w = np.where(np.isfinite(var_x), 1.0 / np.where(np.isfinite(var_x), var_x, 1), 0.0)
     w[:, ~nf] = 0
     info = (w * X[:, None] ** 2)[:, nf].sum(axis=1)
@@ -431,13 +592,13 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         say(f"warning: the flats are not enough for the PRNU map: median standard error {med_se:.4f} against a "
             f"spread of {g_spread:.4f}; record longer flats at levels where the read-out is not deterministic")
     if thr is None and reset is not None:
-        thr = fit_threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative=informative, say=say)
+        thr = _threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative, say)
     if thr is not None:
         out.update(thr)
     if flat_lux is not None:
         lux = np.asarray(flat_lux, np.float64)
-        th = out.get("threshold_e", theta)
-        th_se = out.get("threshold_se", 0.0)
+        th = out.get("threshold_e") or theta
+        th_se = out.get("threshold_se") or 0.0
         wl = w * lux[:, None] ** 2
         den = wl.sum(axis=0)
         s_pix = np.where(den > 0, th * (w * lux[:, None] * np.nan_to_num(x)).sum(axis=0) / np.where(den > 0, den, 1),
@@ -446,6 +607,9 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         se_pix = np.sqrt(se_stat ** 2 + (s_pix * th_se / th) ** 2)
         s_mean = float(np.nanmean(s_pix[nf]))
         se_mean = float(np.sqrt((s_mean * th_se / th) ** 2 + np.mean(se_stat[nf] ** 2) / nf.sum()))
+        if out.get("threshold_e") is None:
+            out["sensitivity_note"] = ("scaled by the base threshold (the threshold was not identified): only "
+                                       "relative to it")
         out.update(sensitivity_e_per_lux=s_mean, sensitivity_se=se_mean,
                    sensitivity_map=s_pix.reshape(shape), sensitivity_se_map=se_pix.reshape(shape))
     return out

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -327,12 +329,23 @@ class SensorProfile:
                 names = ", ".join(bundled_profiles())
                 raise ProfileError(f"no profile file at this path and no bundled profile of this name "
                                    f"(bundled: {names})", path=name_or_path)
+        if p.is_dir():
+            raise ProfileError("is a folder, not a profile file (.npz)", path=p)
         try:
             with np.load(p, allow_pickle=False) as z:
+                if "meta_json" not in z.files:
+                    raise ProfileError(f"no 'meta_json' entry (has: {', '.join(z.files) or 'nothing'}); not a "
+                                       "render2spike profile", path=p, field="meta_json")
                 meta = json.loads(bytes(z["meta_json"]).decode())
                 maps = {nm: z[nm] for nm in MAP_NAMES if nm in z}
-        except (OSError, ValueError, KeyError) as exc:
-            raise ProfileError(f"not a readable render2spike profile ({exc})", path=p) from exc
+        except ProfileError:
+            raise
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            why = "truncated or corrupt" if isinstance(exc, (EOFError, zipfile.BadZipFile, zlib.error)) else \
+                "not a readable render2spike profile"
+            raise ProfileError(f"{why} ({type(exc).__name__}: {exc})", path=p) from exc
+        if not isinstance(meta, dict):
+            raise ProfileError(f"meta_json holds {type(meta).__name__}, expected a mapping", path=p, field="meta_json")
         if meta.get("format") != PROFILE_FORMAT:
             raise ProfileError(f"format is '{meta.get('format')}', expected '{PROFILE_FORMAT}'", path=p,
                                field="format")
@@ -353,6 +366,8 @@ class SensorProfile:
             raise ProfileError("missing required field", path=p, field=str(exc.args[0])) from exc
         except ProfileError as exc:
             raise ProfileError(str(exc), path=p) from exc
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise ProfileError(f"inconsistent profile ({type(exc).__name__}: {exc})", path=p) from exc
 
     # ---------------------------------------------------------------- summary
     def summary(self) -> dict:

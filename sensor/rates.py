@@ -34,6 +34,50 @@ from .units import INTERVAL_S
 _N_INTERVALS_EPS = 1e-6
 
 
+def check_times(t_s, path=None, offset: int = 0) -> np.ndarray:
+    """Keyframe times [s] as float64 (K,), checked finite and strictly increasing; the error names the index.
+
+    ``offset`` is added to the reported index (for chunks of a longer stream).
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"keyframe times must be finite; t_s[{i + offset}] = {float(t[i])!r}", path=path, field="t_s")
+    d = np.diff(t)
+    if np.any(d <= 0):
+        i = int(np.argmax(d <= 0))
+        raise InputError(f"keyframe times must increase strictly; t_s[{i + offset}] = {float(t[i])!r} and "
+                         f"t_s[{i + offset + 1}] = {float(t[i + 1])!r}", path=path, field="t_s")
+    return t
+
+
+def bad_values(arr):
+    """None if ``arr`` is all finite and >= 0, else (how many values are not, index of the first, its value)."""
+    arr = np.asarray(arr)
+    if arr.size == 0:
+        return None
+    lo, hi = arr.min(), arr.max()  # NaN propagates through min/max: one pass when all is well
+    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
+        return None
+    bad = ~np.isfinite(arr) | (arr < 0)
+    idx = tuple(int(x) for x in np.argwhere(bad)[0])
+    return int(bad.sum()), idx, float(arr[idx])
+
+
+def check_rates(rate_e, path=None, field: str = "rate_e", offset: int = 0) -> None:
+    """Raise InputError naming the first (keyframe, row, col) where ``rate_e`` is non-finite or negative.
+
+    ``offset`` is added to the keyframe index (for chunks of a longer array).
+    """
+    found = bad_values(rate_e)
+    if found:
+        n, idx, v = found
+        idx = (idx[0] + offset,) + tuple(idx[1:])
+        raise InputError(f"{n} value(s) are non-finite or negative, first at index {list(idx)}: {v!r} (expected "
+                         "finite photoelectrons per interval >= 0)", path=path, field=field)
+
+
 def n_intervals_spanned(t_first_s: float, t_last_s: float, interval_s: float = INTERVAL_S) -> int:
     """Whole intervals between the first and the last keyframe time."""
     return int(np.floor((float(t_last_s) - float(t_first_s)) / float(interval_s) + _N_INTERVALS_EPS))
@@ -96,7 +140,7 @@ def interval_rates(rate_e, t_s=None, n_intervals: int | None = None, interval_s:
     if t_s is None:
         stop = rate_e.shape[0] if n_intervals is None else m0 + n_intervals
         return rate_e[m0:stop]
-    t = np.asarray(t_s, dtype=np.float64)
+    t = check_times(t_s)
     total = n_intervals_spanned(t[0], t[-1], interval_s)
     n = total - m0 if n_intervals is None else int(n_intervals)
     if m0 + n > total:
@@ -261,11 +305,7 @@ class RateSchedule:
         shared = isinstance(given, np.ndarray) and np.may_share_memory(rate_e, given)
         if rate_e.ndim != 3:
             raise InputError(f"rate_e must be (K, H, W); got shape {rate_e.shape}", field="rate_e")
-        if rate_e.size:
-            lo, hi = rate_e.min(), rate_e.max()  # NaN propagates through min/max
-            if not (np.isfinite(lo) and np.isfinite(hi)) or lo < 0:
-                raise InputError("rate_e must be finite and >= 0 (expected photoelectrons per interval)",
-                                 field="rate_e")
+        check_rates(rate_e)
         if self.per_interval:
             if t_s is not None:
                 raise InputError("this stream takes one rate per interval (t_s=None)", field="t_s")
@@ -275,9 +315,12 @@ class RateSchedule:
             t_new = np.asarray(t_s, dtype=np.float64).reshape(-1)
             if t_new.size != rate_e.shape[0]:
                 raise InputError(f"{t_new.size} timestamps for {rate_e.shape[0]} keyframes", field="t_s")
+            check_times(t_new, offset=self._t.size)
             allt = np.concatenate([self._t, t_new])
             if np.any(np.diff(allt) <= 0):
-                raise InputError("keyframe times must increase strictly across all chunks", field="t_s")
+                i = int(np.argmax(np.diff(allt) <= 0))
+                raise InputError(f"keyframe times must increase strictly across all chunks; t_s[{i}] = {float(allt[i])!r}, "
+                                 f"t_s[{i + 1}] = {float(allt[i + 1])!r}", field="t_s")
             if self.t0_s is None and t_new.size:
                 self.t0_s = float(t_new[0])
             self._t = allt

@@ -128,7 +128,8 @@ class SpikeSimulator:
 
     def describe(self) -> dict:
         """Metadata of this stream, stored with the spikes."""
-        return {"model": self.model_name, "implementation": self.implementation, "seed": self.seed,
+        return {"model": self.model_name, "reset": self.profile.reset if self.model_name == "elssim" else None,
+                "implementation": self.implementation, "seed": self.seed,
                 "block_intervals": self.block, "profile_id": self.profile.name,
                 "interval_s": self.profile.interval_s, "threshold_e": self.profile.threshold_e,
                 "packed_bit_order": "little"}

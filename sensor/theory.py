@@ -307,19 +307,22 @@ def hot_pixel_isi_moments(mu, sigma, p_dark=0.0, n_bins: int = 200, tol: float =
     return m1, m2 - m1 * m1
 
 
-def fit_hot_pixel(mean_isi_obs: float, var_isi_obs: float, p_dark: float = 0.0):
+def fit_hot_pixel(mean_isi_obs: float, var_isi_obs: float, p_dark: float = 0.0, moments=None):
     """Method-of-moments (mu_HP, sigma_HP) [threshold units / interval] from a hot pixel's dark ISIs.
 
-    Solves ``hot_pixel_isi_moments(mu, sigma, p_dark) == (mean, var)`` by least
-    squares in (log mu, log sigma). Returns (mu, sigma).
+    Solves ``moments(mu, sigma, p_dark) == (mean, var)`` by least squares in
+    (log mu, log sigma); ``moments`` defaults to :func:`hot_pixel_isi_moments`
+    (interval reset; the crossing reset's is
+    :func:`sensor.calib_theory.crossing_hot_pixel_isi_moments`). Returns (mu, sigma).
     """
+    moments = moments or hot_pixel_isi_moments
     from scipy.optimize import least_squares
     m_obs, v_obs = float(mean_isi_obs), max(float(var_isi_obs), 1e-6)
     mu0 = 1.0 / max(m_obs - 0.5, 0.5)
     s0 = max(np.sqrt(v_obs * mu0 ** 3), 1e-3)
 
     def resid(x):
-        m, v = hot_pixel_isi_moments(np.exp(x[0]), np.exp(x[1]), p_dark)
+        m, v = moments(np.exp(x[0]), np.exp(x[1]), p_dark)
         return [(m - m_obs) / m_obs, (np.sqrt(max(v, 0.0)) - np.sqrt(v_obs)) / max(np.sqrt(v_obs), 0.05)]
 
     sol = least_squares(resid, x0=[np.log(mu0), np.log(s0)], bounds=([np.log(1e-4), np.log(1e-4)], [np.log(5.0), np.log(5.0)]),

@@ -135,11 +135,13 @@ def test_one_render_serves_every_lux(tmp_path):
 
 
 def test_crossing_reset_is_a_model_axis(frames, tmp_path):
-    res = build_dataset(_spec(frames, lux=[50], models=["elssim", "elssim:crossing"], seeds=[0]), tmp_path,
+    res = build_dataset(_spec(frames, lux=[50], models=["elssim:interval", "elssim:crossing"], seeds=[0]), tmp_path,
                         workers=0, progress=False, log=lambda *a: None)
     assert res.n_done == 2
     infos = [json.loads((p / "sample.json").read_text()) for p in (tmp_path / "samples").iterdir()]
-    assert sorted(str(i["reset"]) for i in infos) == ["None", "crossing"]
+    assert sorted(i["reset"] for i in infos) == ["crossing", "interval"]
+    a, b = (sensor.read_spikes(p / "spikes.npz") for p in (tmp_path / "samples").iterdir())
+    assert (a != b).any()  # same seed, different reset: different streams
     for p in (tmp_path / "samples").iterdir():
         meta = sensor.read_spikes_meta(p / "spikes.npz")
         assert meta["model"] == "elssim" and meta["reset"] == json.loads((p / "sample.json").read_text())["reset"]

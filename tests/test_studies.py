@@ -100,3 +100,29 @@ def test_study_errors_are_clear(frames):
     with pytest.raises(sensor.UnknownMethodError):
         plan_lux_sweep(frames, [1.0], ["elssim"], [0], window=64, methods=["nope"])
     assert parse_model_spec("elssim:crossing") == ("elssim", "crossing")
+
+
+def test_cli_old_and_new_forms(frames, tmp_path):
+    from render2spike.cli import main
+    args = ["--out", str(tmp_path / "a"), "--lux", "5,50", "--models", "ideal", "--seeds", "0", "--window", "64",
+            "--preroll", "50", "--quiet"]
+    assert main(["study", str(frames)] + args) == 0  # the old form: study FRAMES ...
+    assert (tmp_path / "a" / "ssim_vs_lux.png").is_file()
+    args[1] = str(tmp_path / "b")
+    assert main(["study", "lux", str(frames)] + args) == 0
+    assert (tmp_path / "a" / "summary.csv").read_text() == (tmp_path / "b" / "summary.csv").read_text()
+    assert main(["study", "nonsense"]) == 2
+
+
+def test_a_network_checkpoint_is_a_method(frames, tmp_path):
+    torch = pytest.importorskip("torch")
+    from recon.nets import RSIRConfig, RSIRNet, save_checkpoint
+    torch.manual_seed(0)
+    ckpt = tmp_path / "net.pt"
+    save_checkpoint(ckpt, RSIRNet(RSIRConfig.tiny(width=8)), None, step=0)
+    jobs = plan_lux_sweep(frames, [50.0], ["elssim"], [0], window=320, n_centers=1,
+                          methods=["tfp", f"rsir:{ckpt}=tiny net"], preroll=100)
+    rows = run_job(jobs[0])
+    assert {r["method"] for r in rows} == {"TFP (M=320)", "tiny net", NOISE_FREE_LABEL}
+    with pytest.raises(sensor.InputError, match="window 320"):
+        plan_lux_sweep(frames, [50.0], ["elssim"], [0], window=64, methods=[f"rsir:{ckpt}"])

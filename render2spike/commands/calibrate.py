@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 HELP = "estimate a sensor profile from dark and flat-field spike recordings"
@@ -14,10 +13,22 @@ Estimate the fixed-pattern maps of your spike camera (paper Eqs. 2-5):
   hot pixels    pixels whose dark spike fraction exceeds the median by --hot-threshold
                 spikes per interval; their hot charge mu_HP, sigma_HP [threshold units
                 per interval] is fitted to their dark inter-spike intervals;
-  PRNU          per-pixel gain: slope of the dead-time-corrected flat-field rate against
-                the level mean, over the --flat recordings (>= 2 brightness levels).
+  reset         "interval" (Algorithm 2) or "crossing" (continuous time), decided from the
+                lag-1 correlation of the flats' inter-spike intervals (0 for the interval
+                reset, negative for the crossing reset), with a confidence; --reset imposes it;
+  PRNU          per-pixel gain: the flat rates are inverted through the exact rate-vs-light
+                law of the reset and fitted as gain x level light, each (level, pixel)
+                weighted by the information it carries; levels on the interval reset's
+                staircase (nearly deterministic read-out) get no weight; the report says
+                which levels were used and why, and warns when they are not enough;
+  threshold     theta [e-] by photon transfer: the shot-noise part of the ISI variance of a
+                pixel is (mean crossing time)^2 / k; dark events, refractory time and the
+                read-out quantisation are modelled exactly and separated; with a standard error;
+  sensitivity   with --flat-lux (the illuminance you measured for each flat, in order):
+                photoelectrons per lux per interval, per pixel and on average.
 
-Threshold, refractory time, pixel pitch, fill factor and QE are copied from --base.
+Refractory time, pixel pitch, fill factor and QE are copied from --base (the base threshold is
+only a starting point, unless --keep-threshold).
 Recordings are SpikeCV .dat files (give --height/--width; raw 416-wide captures: --raw)
 or render2spike .npz spike containers. Writes PROFILE plus PROFILE-stem_report.{png,json}.
 """
@@ -25,13 +36,14 @@ EXAMPLES = """\
 examples:
   render2spike calibrate --dark dark/*.dat --flat flat/*.dat --raw --out mycam.npz
   render2spike calibrate --dark d*.npz --flat f*.npz --base vidar-default --out mycam.npz
+  render2spike calibrate --dark d*.dat --flat f1.dat f2.dat f3.dat --flat-lux 0.5 1.5 3 --raw --out mycam.npz
 """
 
 
 def register(sub) -> None:
     from sensor.calibration import DEFAULT_HOT_THRESHOLD
-    p = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    from render2spike.commands._common import HelpFormatter, add_overwrite
+    p = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--dark", nargs="+", required=True, metavar="FILE", help="dark recordings (the paper uses 20)")
     p.add_argument("--flat", nargs="+", required=True, metavar="FILE",
                    help="flat-field recordings, one per brightness level (>= 2 levels)")
@@ -44,22 +56,40 @@ def register(sub) -> None:
     p.add_argument("--height", type=int, default=None, help=".dat frame height (default: the base profile's)")
     p.add_argument("--width", type=int, default=None, help=".dat frame width (default: the base profile's)")
     p.add_argument("--raw", action="store_true", help=".dat files are raw 416-wide captures: drop 16 columns")
+    p.add_argument("--flat-lux", nargs="+", type=float, default=None, metavar="LUX",
+                   help="illuminance [lux] of each flat field, in the order of --flat: adds the sensitivity "
+                        "(photoelectrons per lux per interval)")
+    p.add_argument("--reset", choices=["interval", "crossing"], default=None,
+                   help="impose the pixel's reset instead of deciding it from the flats")
+    p.add_argument("--keep-threshold", action="store_true",
+                   help="store the base profile's threshold (the photon-transfer estimate is still reported)")
+    add_overwrite(p, "replace an existing PROFILE (and its report)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from render2spike.commands._common import check_output
     from sensor import SensorProfile
     from sensor.calibration import calibrate, write_report
+    base_path = args.base if Path(args.base).exists() else None
+    check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
     base = SensorProfile.load(args.base)
     drop = 16 if args.raw else 0
     width = args.width or ((base.raw_width or base.width + 16) if args.raw else base.width)
     prof, report = calibrate([Path(f) for f in args.dark], [Path(f) for f in args.flat], base,
                              hot_threshold=args.hot_threshold, name=args.name, height=args.height or base.height,
-                             width=width, drop_columns=drop, progress=print, progress_bar=True)
+                             width=width, drop_columns=drop, reset=args.reset, flat_lux=args.flat_lux,
+                             estimate_threshold=not args.keep_threshold, progress=print, progress_bar=True)
     out = prof.save(args.out)
     files = write_report(report, prof, out.with_name(out.stem + "_report"))
     n = report.numbers
     print(f"wrote {out}: mean dark rate {n['mean_dark_rate_hz']:.1f} Hz, {n['hot_pixels']} hot pixels, "
-          f"PRNU std {n['prnu_std']:.4f}")
+          f"PRNU std {n['prnu_std']:.4f} (median SE {n['prnu_se_median']:.4f}), reset {n['reset']}")
+    if n.get("threshold_e") is not None:
+        print(f"threshold {n['threshold_e']:.0f} +- {n['threshold_se']:.0f} e-"
+              + (" (not stored: --keep-threshold)" if args.keep_threshold else ""))
+    if n.get("sensitivity_e_per_lux") is not None:
+        print(f"sensitivity {n['sensitivity_e_per_lux']:.2f} +- {n['sensitivity_se']:.2f} photoelectrons per lux "
+              "per interval")
     print("report: " + ", ".join(str(f) for f in files))
     return 0

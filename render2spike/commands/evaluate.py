@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 
 
+EXAMPLES = """\
+examples:
+  render2spike evaluate --data davis:data/dvsynth:res=96x128 --methods tfp,tfp:4000,tfi,tfp-dt --out runs/eval
+  render2spike evaluate --data rendered:out/demo/frames --methods tfp,rsir:runs/x/model.pt=RSIR --out runs/eval2
+"""
+
+
 def register(subparsers) -> None:
+    from render2spike.commands._common import HelpFormatter, add_overwrite
     p = subparsers.add_parser(
         "evaluate", help="compare reconstruction methods (PSNR/SSIM table and example grid)",
         description="Reconstruct every test item with each method and score it against the ground truth. "
@@ -13,18 +21,20 @@ def register(subparsers) -> None:
                     "to [0, 1], PSNR and SSIM (scikit-image) with data range 1. Writes table.md, table.csv "
                     "(Methods | PSNR | SSIM, the layout of the ELSSim paper's Table 1), per_item.csv, grid.png "
                     "and summary.json.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--data", required=True,
                    help="data spec KIND:PATH[,PATH...][:key=value...] (split=test by default; see docs/recon.md)")
     p.add_argument("--methods", default="tfp,tfi",
-                   help="comma-separated: tfp, tfp:N, tfi, tfp-dt, rsir:CKPT[=LABEL]")
+                   help="comma-separated: tfp, tfp:N, tfi, tfp-dt, tfp-dt-denoised (the strong classic baseline: "
+                        "width tuned per light level on training data), tfp-dt-denoised:SIGMA, rsir:CKPT[=LABEL]")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],
                    help="spike model for simulated test data (a model= spec option wins)")
-    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (table.md, table.csv, grid.png, ...)")
     p.add_argument("--examples", type=int, default=4, help="rows of the example grid")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated test spikes")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu or cuda")
+    p.add_argument("--seed", type=int, default=0, help="spike seed: seeds the simulated test spikes")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite(p, "write into an existing, non-empty output folder")
     p.set_defaults(func=run)
 
 
@@ -32,6 +42,8 @@ def run(args) -> int:
     from recon.evaluate import evaluate, load_models, parse_methods
     from recon.spec import build_dataset, parse_data_spec
 
+    from render2spike.commands._common import check_output
+    check_output(args.out, overwrite=args.overwrite, folder=True)
     methods = parse_methods(args.methods)
     spec = parse_data_spec(args.data)
     ds = build_dataset(spec, split="test", model=args.noise_model, seed=args.seed, include_spikes=True)

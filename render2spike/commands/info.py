@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -57,8 +59,9 @@ def describe(path, height=250, width=400, raw=False) -> dict:
                 files = z.files
                 shapes = {k: list(z[k].shape) for k in files}
                 meta = json.loads(bytes(z["meta_json"]).decode()) if "meta_json" in z else {}
-        except (OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
-            raise InputError(f"not a readable .npz archive ({exc})", path=p) from exc
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InputError(f"not a readable .npz archive (truncated or corrupt? {type(exc).__name__}: {exc})",
+                             path=p) from exc
         fmt = meta.get("format")
         if fmt == "render2spike-sensor-profile":
             return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}

@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
-import argparse
-
 EXAMPLES = """examples:
   render2spike reconstruct out/demo/spikes.npz --method rsir --out rec            (the shipped network)
   render2spike reconstruct ../shared/data/real/uhsr.npz --method rsir --out rec   (Spike-Zoo/UHSR .npz, 200
       intervals: the 10 windows shrink to 20 intervals each; or --windows 5 --window-length 40)
   render2spike reconstruct scene.dat --height 250 --width 400 --method tfp-dt-denoised --out rec
   render2spike reconstruct capture.dat --layout vidar-raw --method tfp --window 200 --every 100 --out rec
+  render2spike reconstruct out/demo/spikes.npz --method tfi --every 200 --out out/demo/tfi
+  render2spike reconstruct rec.dat --height 250 --width 416 --drop-columns 16 --out rec_tfp
+  render2spike reconstruct out/demo/spikes.npz --method rsir --checkpoint runs/x/model.pt --out out/demo/rsir
 """
 
 
 def register(subparsers) -> None:
+    from render2spike.commands._common import HelpFormatter, add_overwrite
     p = subparsers.add_parser(
         "reconstruct", help="reconstruct images from a spike file",
         description="Reconstruct the image at one or more instants of a spike stream. Outputs per instant: "
@@ -22,7 +24,7 @@ def register(subparsers) -> None:
                     "(rate_e / threshold_e; tfp-dt: the same scale, from its rate_e). Reads every layout "
                     "sensor.read_spikes knows (container .npz, .dat, Spike-Zoo/UHSR 'spk' .npz, SpikingSIM "
                     "'arr_0' .npz, RSIR packed .npz, HDF5); any height and width.",
-        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("spikes", metavar="SPIKES", help="spike file (.npz, .dat, .h5)")
     p.add_argument("--method", default="tfp", choices=["tfp", "tfi", "tfp-dt", "tfp-dt-denoised", "rsir"],
                    help="tfp (default), tfi, tfp-dt (dead-time corrected), tfp-dt-denoised (the strong classic "
@@ -48,12 +50,16 @@ def register(subparsers) -> None:
     p.add_argument("--width", type=int, help=".dat frame width as stored (default 400)")
     p.add_argument("--drop-columns", type=int, default=0, help=".dat columns to drop on the right (16 for raw 416)")
     p.add_argument("--formats", default="png,exr,npy", help="comma-separated subset of png, exr, npy")
-    p.add_argument("--device", default="auto", help="auto (CUDA if present), cpu or cuda")
+    p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu or cuda (rsir only)")
+    add_overwrite(p, "write into an existing, non-empty output folder")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from recon.reconstruct import reconstruct_file
+
+    from render2spike.commands._common import check_output
+    check_output(args.out, inputs=[args.spikes, args.checkpoint], overwrite=args.overwrite, folder=True)
     written = reconstruct_file(args.spikes, method=args.method, checkpoint=args.checkpoint, out_dir=args.out,
                                window=args.window, center=args.center, every=args.every, profile=args.profile,
                                height=args.height, width=args.width, drop_columns=args.drop_columns,

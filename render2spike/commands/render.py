@@ -23,8 +23,12 @@ translating_object, room_pan, lambertian_plane); see docs/render.md.
 Keyframes start at --keyframe-rate and are refined where the irradiance changes
 by more than the scene's tolerance between neighbours. Samples per pixel are
 chosen so render noise stays below photon shot noise (over a 64-interval
-window) unless --spp is given. Rerunning the same command resumes; a changed
-scene or setting is refused unless --overwrite.
+window) unless --spp is given. Rerunning the same command resumes (the result
+is byte-identical to an uninterrupted render); a changed scene or setting is
+refused unless --overwrite. While it renders, the folder is locked: a second
+render into it is refused, naming the first (pid, host, start time).
+Frame files are named by time (frame_TTTTTTTT.exr, the tick on the finest
+time grid), so they sort in time order.
 """
 EXAMPLES = """\
 examples:
@@ -32,12 +36,12 @@ examples:
   render2spike render rotating_disk --out out/dim --lux 2 --duration 0.05
   render2spike render scenes/translating_object.yaml --out out/fast \\
       --set objects.cube.motion.parametric.0.translate.velocity_m_s=[1,0,0] --spp 64
-  render2spike render room_pan --out out/room --keyframe-rate 2000 --seed 3 --overwrite
+  render2spike render room_pan --out out/room --keyframe-rate 2000 --render-seed 3 --overwrite
 """
 
 
-def add_scene_options(p, seed_help: str = "render base seed (per-frame seeds derive from it; default: the scene's)") -> None:
-    """Options shared by `render` and `run` (``seed_help`` says what --seed seeds in each)."""
+def add_scene_options(p) -> None:
+    """Options shared by `render` and `run`. ``--render-seed`` seeds the render; ``--seed`` (run only) the spikes."""
     p.add_argument("scene", metavar="SCENE", help="scene YAML file or bundled scene name")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--lux", type=float, metavar="X", help="illuminance at the scene's reference [lux] (overrides the scene)")
@@ -49,7 +53,9 @@ def add_scene_options(p, seed_help: str = "render base seed (per-frame seeds der
     p.add_argument("--profile", metavar="NAME|PATH", help="sensor profile (sets resolution and pixel pitch)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any scene key, dotted path; list items by index or name (repeatable)")
-    p.add_argument("--seed", type=int, default=None, metavar="N", help=seed_help)
+    p.add_argument("--render-seed", type=int, default=None, metavar="N",
+                   help="render base seed: per-frame Monte Carlo seeds derive from it (default: the scene's "
+                        "render.seed, 0 if unset)")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -67,16 +73,20 @@ def scene_sets(args) -> list[str]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("render", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    from render2spike.commands._common import HelpFormatter
+    p = sub.add_parser("render", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     add_scene_options(p)
+    p.add_argument("--seed", type=int, default=None, help=argparse.SUPPRESS)  # only to say what to use instead
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
-    args.render_seed = args.seed
+    from sensor.errors import InputError
+    if args.seed is not None:
+        raise InputError("`render` makes no spikes, and --seed is the spike seed in every command; use "
+                         "--render-seed N to seed the render", field="--seed")
     sc = load_scene(args.scene, scene_sets(args), lux=args.lux, duration_s=args.duration, profile=args.profile)
     res = render_scene(sc, args.out, overwrite=args.overwrite, progress=not args.quiet)
     m = res.manifest

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
-
 HELP = "render a scene, simulate the spike camera, write a preview and a summary"
 DESCRIPTION = """\
 The whole pipeline in one command:
@@ -17,26 +15,34 @@ The whole pipeline in one command:
      OUT/preview.gif;
   4. a summary (spike rate, lux, frames, timings) -> OUT/summary.json, summary.md.
 
+With --dat the spikes are also written as OUT/spikes.dat (SpikeCV layout).
 The sensor profile comes from the scene (camera.profile) unless --profile is given.
+--seed seeds the spike simulation (default 0), --render-seed the render; the same
+scene, options and seeds give bitwise-identical frames and spikes, also after a
+resumed render. Rerunning into OUT resumes the render and rewrites the rest;
+an OUT made with another scene, model, seed or profile is refused unless --overwrite.
+SCENE is a YAML file or a bundled scene name (rotating_disk, translating_object,
+room_pan, lambertian_plane).
 """
 EXAMPLES = """\
 examples:
-  render2spike run scenes/rotating_disk.yaml --out out/demo          # the README demo, ~30-45 s on 2 cores
-  render2spike run rotating_disk --out out/dim --lux 5 --model elssim --seed 1
-  render2spike run translating_object --out out/ideal --model ideal --duration 0.05
+  render2spike run scenes/rotating_disk.yaml --out out/demo          # the README demo (~40 s CPU)
+  render2spike run rotating_disk --out out/dim --lux 5 --model elssim --seed 1 --dat
+  render2spike run translating_object --out out/ideal --model ideal --duration 0.05 --render-seed 2
 """
 
 
 def register(sub) -> None:
     from sensor.models import MODELS
 
+    from render2spike.commands._common import HelpFormatter
     from render2spike.commands.render import add_scene_options
-    p = sub.add_parser("run", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_options(p, seed_help="seed of the spike simulation (default 0); --render-seed seeds the render")
+    p = sub.add_parser("run", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
+    add_scene_options(p)
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="spike seed: seeds the spike simulation (default: 0); --render-seed seeds the render")
     p.add_argument("--model", default="elssim", choices=MODELS, help="spike noise model (default: elssim)")
-    p.add_argument("--render-seed", type=int, default=None, metavar="N",
-                   help="render base seed (default: the scene's); --seed seeds the spike simulation")
+    p.add_argument("--dat", action="store_true", help="also write OUT/spikes.dat (SpikeCV .dat layout)")
     p.add_argument("--preview-window", type=int, default=200, metavar="INTERVALS",
                    help="TFP window of the previews in intervals (default 200 = 10 ms)")
     p.set_defaults(func=run)
@@ -46,8 +52,8 @@ def run(args) -> int:
     from render2spike.commands.render import scene_sets
     from render2spike.pipeline import run_pipeline
     s = run_pipeline(args.scene, args.out, sets=scene_sets(args), lux=args.lux, duration_s=args.duration,
-                     profile=args.profile, model=args.model, seed=0 if args.seed is None else args.seed,
-                     overwrite=args.overwrite, progress=not args.quiet, preview_window=args.preview_window)
+                     profile=args.profile, model=args.model, seed=args.seed, overwrite=args.overwrite,
+                     progress=not args.quiet, preview_window=args.preview_window, dat=args.dat)
     print(f"run: {s['scene']} at {s['illuminance_lux']:g} lux: {s['frames']} frames, {s['intervals']} intervals, "
           f"{s['spikes']} spikes ({s['spike_rate_hz']:.1f} Hz per pixel); {s['seconds']['total']:.1f} s -> {args.out}")
     print(f"run: preview {s['files']['png']}, {s['files']['gif']}; summary {args.out}/summary.md")

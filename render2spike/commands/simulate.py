@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import time
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +33,15 @@ examples:
   render2spike simulate out/frames --out spikes.npz
   render2spike simulate rate.npz --out spikes.dat --model isi --seed 7
   render2spike simulate out/frames --out ref.npz --reference   # step-by-step reference simulator
+  render2spike simulate rate.npz --out alg2.npz --reset interval  # Algorithm 2's end-of-interval reset
 """
 
 
 def register(sub) -> None:
     from sensor.models import MODELS
+    from sensor.profile import RESETS
+
+    from render2spike.commands._common import add_overwrite
     p = sub.add_parser("simulate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", metavar="INPUT", help="frames folder, .npz (rate_e[, t_s]) or .npy (rate_e per interval)")
@@ -43,12 +49,16 @@ def register(sub) -> None:
     p.add_argument("--model", default="elssim", choices=MODELS, help="noise model (default: elssim)")
     p.add_argument("--profile", default="vidar-default", metavar="NAME|PATH",
                    help="sensor profile: bundled name or .npz file (default: vidar-default)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default: 0)")
+    p.add_argument("--seed", type=int, default=0, help="spike seed: seeds every random draw of the simulation (default: 0)")
+    p.add_argument("--reset", choices=RESETS, default=None,
+                   help="pixel reset of elssim, overriding the profile's: 'crossing' (fires and resets the moment "
+                        "the charge reaches the threshold; vidar-default) or 'interval' (Algorithm 2 as published)")
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator instead of the fast event-driven one")
     p.add_argument("--chunk", type=int, default=32, metavar="K",
                    help="keyframes read per step (memory bound; the result does not depend on it; default 32)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite(p)
     p.set_defaults(func=run)
 
 
@@ -146,13 +156,13 @@ class RateSource:
                 shape = self._member.shape
             except InputError:
                 raise
-            except (OSError, ValueError, KeyError) as exc:
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
                 raise InputError(f"not a readable .npz ({exc})", path=self.path) from exc
             self.kind = "array"
         elif self.path.suffix == ".npy":
             try:
                 self.rate = np.load(self.path, allow_pickle=False, mmap_mode="r")
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, EOFError) as exc:
                 raise InputError(f"not a readable .npy ({exc})", path=self.path) from exc
             shape = self.rate.shape
             self.t_s = None
@@ -166,6 +176,11 @@ class RateSource:
             if self.t_s is not None and self.t_s.shape != (shape[0],):
                 raise InputError(f"t_s has shape {self.t_s.shape}; expected ({shape[0]},)", path=self.path,
                                  field="t_s")
+            if shape[0] == 0 or 0 in shape[1:]:
+                raise InputError(f"rate_e is empty (shape {shape})", path=self.path, field="rate_e")
+            if self.t_s is not None:
+                from sensor.rates import check_times
+                check_times(self.t_s, path=self.path)
             self.shape = tuple(shape[1:])
             self.n = shape[0]
             self.per_interval = self.t_s is None
@@ -181,9 +196,18 @@ class RateSource:
         if self.kind == "frames":
             return np.stack([photoelectron_rate(self.frames.read(q).phi, profile) for q in range(i, j)]).astype(
                 np.float32, copy=False)
-        if self._member is not None:
-            return self._member.rows(i, j).astype(np.float32, copy=False)
-        return np.asarray(self.rate[i:j], dtype=np.float32)  # a view of the map for float32 files
+        from sensor.errors import InputError
+        from sensor.rates import check_rates
+        try:
+            if self._member is not None:
+                rate = self._member.rows(i, j).astype(np.float32, copy=False)
+            else:
+                rate = np.asarray(self.rate[i:j], dtype=np.float32)  # a view of the map for float32 files
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InputError(f"cannot read rows {i}..{j - 1} of rate_e (truncated or corrupt? {exc})",
+                             path=self.path, field="rate_e") from exc
+        check_rates(rate, path=self.path, offset=i)  # checked as it streams in: names the absolute index
+        return rate
 
     def chunks(self, profile, size: int, prefetch: bool = True):
         """Yield (rate_e, t_s) chunks of ``size`` rows; the next chunk is read in a thread meanwhile."""
@@ -216,10 +240,16 @@ def run(args) -> int:
     from sensor import SensorProfile, SpikeSimulator
     from sensor.spikefile import SpikeWriter
 
+    from render2spike.commands._common import check_output
+    from sensor.errors import InputError
+
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else print
+    check_output(args.out, inputs=[args.input], overwrite=args.overwrite, say=say)
     src = RateSource(args.input)
     profile = fit_profile(SensorProfile.load(args.profile), src.shape, say)
+    if getattr(args, "reset", None):
+        profile = profile.replace(reset=args.reset)
     rendered_for = (src.frames.manifest.get("profile") or {}).get("name") if src.kind == "frames" else None
     if rendered_for and rendered_for != profile.name:
         say(f"warning: the frames were rendered for profile '{rendered_for}' (its QE weights Phi); simulating "
@@ -227,6 +257,12 @@ def run(args) -> int:
     sim = SpikeSimulator(profile, args.model, args.seed, implementation="reference" if args.reference else "fast",
                          per_interval=src.per_interval)
     total = src.n_intervals(profile.interval_s)
+    if total < 1:
+        what = "keyframes span" if not src.per_interval else "input holds"
+        span = (f"{src.t_s[-1] - src.t_s[0]:.6g} s ({src.n} keyframe(s))" if not src.per_interval else "no rows")
+        raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
+                         "(need at least two keyframes one interval apart)", path=args.input,
+                         field="frames" if src.kind == "frames" else "t_s")
     desc = sim.describe()
     extra = {"input_kind": src.kind, "simulator": desc}
     with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,

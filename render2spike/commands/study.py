@@ -28,7 +28,7 @@ examples:
   render2spike study lux out/trans --out out/lux --lux 0.5,5,50,500 --models elssim,isi --seeds 0,1,2
   render2spike study motion translating_object --param speed_px_per_ms=0.1,0.3,1 --out out/motion \\
       --duration 0.03 --set render.spp=16
-  render2spike study generalisation --data spec.yaml --train-models ideal,isi,elssim --out out/gen
+  render2spike study generalisation --data spec.yaml --train-models ideal,isi,elssim:crossing --out out/gen
 """
 STUDIES = ("lux", "motion", "generalisation")
 
@@ -55,6 +55,7 @@ def register(sub) -> None:
 
 def _common(p, window=320):
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty output folder")
     p.add_argument("--methods", default="tfp,tfp-dt", metavar="M1,M2",
                    help="reconstructions (recon's registry: tfp, tfp:N, tfi, tfp-dt, rsir:CKPT, ...; default "
                         "tfp,tfp-dt); the noise-free window average is always added")
@@ -151,13 +152,15 @@ items; rows: training model, plus the classic baselines; columns: test model),
 heatmap.png and study.json.""", epilog="""\
 examples:
   render2spike study generalisation --data spec.yaml --out out/gen --train-models ideal,isi,elssim \\
-      --test-models ideal,isi,elssim --steps 200 --crop 32x32
+      --test-models ideal,isi,elssim:interval,elssim:crossing --steps 200 --crop 32x32
   render2spike study generalisation --data spec.yaml --out out/gen --reuse elssim=runs/big/model.pt
 """)
     p.add_argument("--data", required=True, metavar="SPEC.yaml", help="dataset spec (scenes, lux, parameters)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--train-models", type=_words, default=["ideal", "isi", "elssim"], metavar="M1,M2",
-                   help="one network per model (ideal, isi, elssim, MODEL:RESET; default ideal,isi,elssim)")
+    p.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty output folder")
+    p.add_argument("--train-models", type=_words, default=["ideal", "isi", "elssim:interval", "elssim:crossing"],
+                   metavar="M1,M2", help="one network per model (ideal, isi, elssim, MODEL:RESET; a bare elssim "
+                   "follows the profile's reset; default ideal,isi,elssim:interval,elssim:crossing)")
     p.add_argument("--test-models", type=_words, default=None, metavar="M1,M2",
                    help="test data models (default: the training models)")
     p.add_argument("--baselines", default="tfp-dt", metavar="M1,M2",
@@ -197,7 +200,9 @@ def run(args) -> int:
 
 
 def run_lux(a) -> int:
+    from render2spike.commands._common import check_output
     from render2spike.studies.lux import make_client, plan_lux_sweep, run_jobs, write_study
+    check_output(a.out, inputs=[a.frames], overwrite=a.overwrite, folder=True)
     jobs = plan_lux_sweep(a.frames, a.lux, a.models, a.seeds, profile=a.profile, window=a.window,
                           n_centers=a.centers, methods=a.methods, reference_lux=a.reference_lux, preroll=a.preroll)
     client = make_client(a.dask)
@@ -213,7 +218,9 @@ def run_lux(a) -> int:
 
 
 def run_motion(a) -> int:
+    from render2spike.commands._common import check_output
     from render2spike.studies.motion import parse_param, run_motion_study
+    check_output(a.out, overwrite=a.overwrite, folder=True)
     key, values = parse_param(a.param)
     res = run_motion_study(a.scene, key, values, a.out, methods=a.methods, models=a.models, seeds=a.seeds,
                            lux=a.lux, duration_s=a.duration, sets=a.set, profile=a.profile, window=a.window,
@@ -225,7 +232,9 @@ def run_motion(a) -> int:
 
 
 def run_generalisation(a) -> int:
+    from render2spike.commands._common import check_output
     from render2spike.studies.generalisation import run_generalisation_study
+    check_output(a.out, inputs=[a.data], overwrite=a.overwrite, folder=True)
     res = run_generalisation_study(a.data, a.out, train_models=a.train_models, test_models=a.test_models,
                                    baselines=a.baselines, reuse=a.reuse, steps=a.steps, batch_size=a.batch_size,
                                    size=a.size, width=a.width, crop=a.crop, test_fraction=a.test_fraction,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
+from pathlib import Path
 
 EXAMPLES = """presets (--size):
   tiny   width 16, 2 residual blocks, 2 attention blocks (2 heads) at width 16: 20,587 parameters;
@@ -23,6 +23,7 @@ examples:
   render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --out runs/a --steps 2000
   render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 \\
       --data rendered:out/disk,out/room:crop=64x64:lux=0.5-500 --size rsir --out runs/b
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --out runs/a --steps 3000 --resume
   render2spike train --data sdmd:data/SDMD:split=train --init runs/a/model.pt --out runs/ft
 """
 
@@ -35,18 +36,21 @@ PRESETS = ("tiny", "paper", "rsir")
 
 
 def register(subparsers) -> None:
+    from render2spike.commands._common import HelpFormatter
     p = subparsers.add_parser(
         "train", help="train a reconstruction network (RSIR architecture)",
         description="Train an RSIR-architecture network on spikes simulated from DAVIS-layout or rendered data "
                     "(or on SDMD-style real pairs). Input: 10 TFP windows of 32 intervals (M = 320); target: the "
                     "clean intensity at the window centre in ideal spikes per interval (rate_e / threshold_e).",
-        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--data", required=True, action="append",
                    help=HELP_DATA + "; repeat to train on several sources at once (same crop)")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],
                    help="spike model the training spikes are simulated with (a model= spec option wins)")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (checkpoints, loss curve)")
     p.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR from its last checkpoint")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start a new run in RUN_DIR, deleting its checkpoints, loss curve and model")
     p.add_argument("--init", metavar="CKPT", help="start from these weights (fine-tuning)")
     p.add_argument("--steps", type=int, default=2000, help="optimiser steps in total (default 2000)")
     p.add_argument("--batch-size", type=int, default=4, help="items per step (default 4)")
@@ -72,12 +76,21 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is best on a busy "
                    "2-core machine with --workers 1)")
     p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu or cuda")
-    p.add_argument("--seed", type=int, default=0, help="seed of batch order and data")
+    p.add_argument("--seed", type=int, default=0, help="spike seed of the training data; also seeds batch order "
+                   "and weight init")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 SIZE_FLAGS = ("width", "res_blocks", "attn_depth", "heads", "attn_window")
+
+
+def clear_run(out: Path) -> None:
+    """Remove what `train` wrote into ``out`` (checkpoints, loss curve, model, config), nothing else."""
+    for p in sorted((out / "checkpoints").glob("*.pt")) if (out / "checkpoints").is_dir() else []:
+        p.unlink()
+    for name in ("loss.csv", "loss.png", "config.json", "summary.json", "model.pt"):
+        (out / name).unlink(missing_ok=True)
 
 
 def run(args) -> int:
@@ -88,6 +101,13 @@ def run(args) -> int:
     from recon.train import TrainConfig, train
     from sensor.errors import InputError
 
+    if args.overwrite and args.resume:
+        raise InputError("--overwrite starts a new run and --resume continues one: give one of them",
+                         field="--overwrite")
+    if args.init and Path(args.init).exists() and Path(args.out).exists() and \
+            Path(args.init).resolve().is_relative_to(Path(args.out).resolve()) and args.overwrite:
+        raise InputError("--init lies inside the run directory that --overwrite would empty; copy it elsewhere "
+                         "first", path=args.init, field="--init")
     given = [f"--{n.replace('_', '-')}" for n in SIZE_FLAGS + ("size", "normalise") if getattr(args, n) is not None]
     given += [f for f, on in (("--cumulative", args.cumulative), ("--linearise", args.linearise)) if on]
     if args.init and given:
@@ -96,6 +116,8 @@ def run(args) -> int:
     if args.resume and given:
         raise InputError(f"--resume continues the stored network; drop {', '.join(given)}", field="--resume")
     ds = build_datasets(args.data, split="train", model=args.noise_model, seed=args.seed)
+    if args.overwrite:
+        clear_run(Path(args.out))
     net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
                              linearise=args.linearise)
     for name in SIZE_FLAGS:

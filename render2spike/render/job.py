@@ -1,25 +1,43 @@
-"""Render a scene to a frames folder: noise budget, adaptive keyframes, resume, progress.
+"""Render a scene to a frames folder: noise budget, adaptive keyframes, resume, lock, progress.
 
 Output (the frame contract of :mod:`sensor.frames`)
 ---------------------------------------------------
-``OUT/frame_NNNNNN.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
+``OUT/frame_TTTTTTTT.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
 ``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``,
 ``scene_hash``, ``target_lux``, ``made_by``) and ``OUT/frames.json``, written
-last, when every frame is done.
+last, when every frame is done. ``TTTTTTTT`` is the frame's tick on the finest
+time grid (``time_s = duration_s * tick / n_ticks``), zero-padded: file names
+sort in time order.
 
-Resume
-------
-``OUT/render_state.json`` records the scene hash and each finished frame
-(written atomically after every frame). Rerunning the same command keeps the
-finished frames and renders only the rest. If the scene, a setting, the
-profile or the Mitsuba variant changed (a different hash), the folder is
-refused, or with ``overwrite=True`` emptied of our files and rendered anew:
-frames of two scenes are never mixed.
+Resume and reproducibility
+--------------------------
+``OUT/render_state.json`` records the scene hash, the light-level measurement
+(``calibration``: the irradiance meter's reading behind ``illuminance_lux``) and
+the samples per pixel, written once when the render starts; each finished frame
+appends one line to ``OUT/render_journal.jsonl`` (so a long render does not
+rewrite a growing file per frame). Rerunning the same command keeps the
+finished frames, reuses the stored measurement and spp, and renders only the
+rest: a resumed folder holds exactly the frames an uninterrupted render makes.
+The measurement itself is deterministic (see
+:meth:`.renderer.SceneRenderer.measure_reference`), so two separate renders of
+one scene are bitwise identical too. If the scene, a setting, the profile or
+the Mitsuba variant changed (a different hash), the folder is refused, or with
+``overwrite=True`` emptied of our files and rendered anew: frames of two scenes
+are never mixed.
+
+Lock
+----
+While rendering, ``OUT/.render2spike.lock`` names the writer (pid, host, start
+time); a second render into the same folder is refused with that name, and a
+lock left by a dead process is taken over (:mod:`sensor.lock`). Unfinished temp
+files of killed writers are swept on start.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +46,8 @@ import numpy as np
 
 from sensor.errors import InputError
 from sensor.fileio import provenance, write_json_atomic
-from sensor.frames import MANIFEST_NAME, frame_filename, read_frame, write_frame, write_manifest
+from sensor.frames import MANIFEST_NAME, read_frame, write_frame, write_manifest
+from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
@@ -36,6 +55,12 @@ from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
 from .scene import Scene
 
 STATE_NAME = "render_state.json"
+JOURNAL_NAME = "render_journal.jsonl"
+
+
+def tick_filename(tick: int) -> str:
+    """File name of the frame at grid tick ``tick`` (zero-padded: names sort in time order)."""
+    return f"frame_{int(tick):08d}.exr"
 
 
 @dataclass
@@ -62,10 +87,12 @@ def _clean(out: Path, state: dict | None, manifest: dict | None) -> None:
     for rec in (state or {}).get("frames", {}).values():
         names.add(rec["file"])
     for rec in (manifest or {}).get("frames", []):
-        names.add(rec["file"])
+        if isinstance(rec, dict) and isinstance(rec.get("file"), str):
+            names.add(rec["file"])
     for nm in names:
-        (out / nm).unlink(missing_ok=True)
-    for nm in (STATE_NAME, MANIFEST_NAME):
+        if "/" not in nm and "\\" not in nm:
+            (out / nm).unlink(missing_ok=True)
+    for nm in (STATE_NAME, JOURNAL_NAME, MANIFEST_NAME):
         (out / nm).unlink(missing_ok=True)
 
 
@@ -76,27 +103,88 @@ def _read_json(p: Path):
         return None
 
 
+def load_state(out) -> dict | None:
+    """The render state of a frames folder: the header (render_state.json) with ``frames`` from the journal.
+
+    ``frames`` maps the tick (a string) to ``{"file", "time_s", "render_noise_ratio"}``. A journal line cut
+    short by a kill is ignored (its frame is rendered again).
+    """
+    out = Path(out)
+    state = _read_json(out / STATE_NAME)
+    if not isinstance(state, dict):
+        return None
+    frames = dict(state.get("frames") or {})  # states written before the journal existed
+    try:
+        lines = (out / JOURNAL_NAME).read_text().splitlines()
+    except OSError:
+        lines = []
+    for line in lines:
+        try:
+            rec = json.loads(line)
+            frames[str(int(rec["tick"]))] = {k: rec[k] for k in ("file", "time_s", "render_noise_ratio") if k in rec}
+        except (ValueError, KeyError, TypeError):
+            continue
+    state["frames"] = frames
+    return state
+
+
+def _append_journal(out: Path, rec: dict) -> None:
+    with open(out / JOURNAL_NAME, "a") as f:
+        f.write(json.dumps(rec) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _write_state(out: Path, state: dict) -> None:
+    write_json_atomic(out / STATE_NAME, {k: v for k, v in state.items() if k != "frames"})
+
+
 def settings_of(scene: Scene, variant: str) -> dict:
     """Everything besides the scene data that changes the frames (part of the hash)."""
     # variant_family keeps GPU (cuda) and CPU (llvm/scalar) frames apart; procedure 2: exact spp in one
-    # launch per frame, fitted noise budget, curvature-based keyframes (frames of procedure 1 are not resumed)
-    return {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 1,
+    # launch per frame, fitted noise budget, curvature-based keyframes (frames of procedure 1 are not resumed);
+    # frames_format 2: frames named by tick, light level stored in the render state
+    return {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
             "procedure": 2}
 
 
 def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
                  log=print) -> RenderResult:
-    """Render ``scene`` into the frames folder ``out`` (resuming if possible). See the module docstring."""
-    t_start = time.perf_counter()
+    """Render ``scene`` into the frames folder ``out`` (resuming if possible). See the module docstring.
+
+    Raises :class:`sensor.errors.InputError` (before anything is written) for a folder of another scene
+    (without ``overwrite``), a folder another render is writing into, or a scene with no usable light.
+    """
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", path=out)
+    created = not out.exists()
+    lock = FolderLock(out, "a render", log=log)
+    lock.acquire()
+    wrote = {"any": False}
+    try:
+        sweep_parts(out, log=log)
+        return _render_locked(scene, out, overwrite, progress, variant, log, wrote)
+    except BaseException:
+        lock.release()
+        if created and not wrote["any"]:  # nothing of ours to keep: leave no empty folder behind
+            for nm in (STATE_NAME, JOURNAL_NAME):
+                (out / nm).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+    finally:
+        lock.release()
+
+
+def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, variant, log, wrote) -> RenderResult:
+    t_start = time.perf_counter()
     mi = backend.mitsuba(variant)
     variant = mi.variant()
     scene_hash = scene.content_hash(settings_of(scene, variant))
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", path=out)
-    out.mkdir(parents=True, exist_ok=True)
     manifest = _read_json(out / MANIFEST_NAME)
-    state = _read_json(out / STATE_NAME)
+    manifest = manifest if isinstance(manifest, dict) else None
+    state = load_state(out)
     old_hash = (manifest or {}).get("scene_hash") or (state or {}).get("scene_hash")
     if old_hash is not None and old_hash != scene_hash:
         if not overwrite:
@@ -113,14 +201,23 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
             log(f"render: {out} is up to date ({len(manifest['frames'])} frames, scene hash {scene_hash})")
             return RenderResult(out, len(manifest["frames"]), 0, int(manifest.get("spp", 0)), scene_hash,
                                 time.perf_counter() - t_start, True, manifest)
+    if manifest is None and state is None and not overwrite and any(
+            not p.name.startswith(".") for p in out.iterdir()):
+        raise InputError("this folder is not empty and holds no render2spike frames; choose an empty or new "
+                         "folder for --out (or pass --overwrite to render into it anyway)", path=out)
+    if state is not None and state.get("format_version") != 2:
+        _clean(out, state, manifest)  # a state from before the journal: its frames are named differently
+        state = None
     if state is None:
-        state = {"scene_hash": scene_hash, "scene": str(scene.path), "frames": {}, "complete": False}
+        state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "frames": {},
+                 "complete": False}
     # keep only frames whose files exist
     state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
     n_resumed = len(state["frames"])
 
     from .renderer import SceneRenderer
-    rnd = SceneRenderer(scene, variant)
+    rnd = SceneRenderer(scene, variant, calibration=state.get("calibration"))
+    state["calibration"] = rnd.calibration
     rcfg = scene.render
     ncfg = rcfg["noise"]
     W = int(ncfg["window_intervals"])
@@ -129,14 +226,22 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
     # ---- noise budget: pilot pairs at t = 0, convergence fitted (noise.pilot_budget) -----------
     K = keyframes_per_window(W, scene.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
     budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale)
-    spp = int(rcfg["spp"]) if rcfg["spp"] != "auto" else budget["spp"]  # taken exactly (launch_counts)
+    if "spp" in state and "noise_budget" in state:  # resuming: the frames already made fix the spp
+        budget = state["noise_budget"]
+        spp = int(state["spp"])
+    else:
+        spp = int(rcfg["spp"]) if rcfg["spp"] != "auto" else budget["spp"]  # taken exactly (launch_counts)
+        state["spp"], state["noise_budget"] = spp, budget
+    _write_state(out, state)
     if rcfg["spp"] == "auto" and budget["clipped"]:
         log(f"render: note: the noise budget asks for {budget['spp_needed']} spp, more than max_spp = "
             f"{ncfg['max_spp']}; render noise will be ~{budget['predicted_ratio']:.2f} of the shot noise over "
             f"{W} intervals (recorded per frame as render_noise_ratio)")
     # noise floor of the change metric: smoothed pilot variance, scaled to the chosen spp
     v_px = pilot_var_px(spp)
-    var_floor = np.maximum(_box(v_px, 2), float(np.median(v_px)))
+    # (the t = 0 map is stale where objects move, and edges carry most of the render noise: floor at the 99th
+    # percentile so moving edges' noise is not taken for curvature)
+    var_floor = np.maximum(_box(v_px, 2), float(np.quantile(v_px, 0.99)))
 
     # ---- adaptive keyframes ---------------------------------------------------------
     acfg = rcfg["adaptive"]
@@ -145,8 +250,23 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover
         tqdm = None
-    bar = tqdm(total=grid.n_base + 1, unit="frame", desc=f"render {scene.name}", disable=not progress,
-               dynamic_ncols=True) if tqdm else None
+    # progress in camera time [ms]: frames come in time order (refinements of an interval before the next
+    # base keyframe), so the furthest time asked for only grows; the frame counts are shown beside it
+    dur_ms = scene.duration_s * 1e3
+    bar = tqdm(total=round(dur_ms, 3), unit="ms", desc=f"render {scene.name}", disable=not progress,
+               dynamic_ncols=True, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} ms camera time "
+               "[{elapsed}<{remaining}{postfix}]") if tqdm else None
+    seen = {"tick": 0, "frames": 0, "refined": 0}
+
+    def advance(tick: int) -> None:
+        seen["frames"] += 1
+        if bar is None:
+            return
+        seen["tick"] = max(seen["tick"], tick)
+        target = round(dur_ms * seen["tick"] / grid.n_ticks, 3)
+        if target > bar.n:
+            bar.update(target - bar.n)
+        bar.set_postfix_str(f"{seen['frames']} frames, {seen['refined']} refined", refresh=True)
     n_rendered = 0
     ratios = []
     made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name, "variant": variant})
@@ -158,36 +278,34 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         rec = state["frames"].get(key)
         if rec is not None:
             fr = read_frame(out / rec["file"])
-            if bar:
-                bar.update(1)
+            advance(tick)
             return fr.phi.astype(np.float64)
         # the achieved ratio is measured on the first and every VERIFY_EVERY-th frame (one extra render each)
         f = rnd.render_frame(t_s, int(rcfg["seed"]), spp, variance=n_rendered % VERIFY_EVERY == 0)
         rate_var = None if f["phi_var"] is None else f["phi_var"] * rate_scale ** 2
         ratio = render_noise_ratio(f["phi"] * rate_scale, rate_var, W, K)
         ratios.append(ratio)
-        used = {v["file"] for v in state["frames"].values()}
-        idx = len(state["frames"])
-        while frame_filename(idx) in used:  # files not in the state are leftovers of this folder: reusable
-            idx += 1
-        name = frame_filename(idx)
+        bad = ~np.isfinite(f["phi"]) | ~np.isfinite(f["lux"])
+        if bad.any():
+            r, c = (int(x) for x in np.argwhere(bad)[0])
+            raise InputError(f"the frame at t = {t_s:.6g} s has {int(bad.sum())} non-finite pixel(s), first at row "
+                             f"{r}, column {c}: check the scene's light and material values", path=scene.path)
+        name = tick_filename(tick)
         attrs = {"spp": int(spp), "render_noise_ratio": float(ratio), "render_noise_window_intervals": W,
                  "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
         write_frame(out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=t_s, attrs=attrs)
+        wrote["any"] = True
         state["frames"][key] = {"file": name, "time_s": t_s, "render_noise_ratio": float(ratio)}
-        write_json_atomic(out / STATE_NAME, state)
+        _append_journal(out, {"tick": int(tick), **state["frames"][key]})
         n_rendered += 1
-        if bar:
-            bar.update(1)
+        advance(tick)
         return f["phi"]
 
     metric = interpolation_metric(var_floor, rate_scale, W, scene.profile.interval_s, z=4.0)
 
     def on_new(n):
-        if bar:
-            bar.total += n
-            bar.refresh()
+        seen["refined"] += n
 
     try:
         ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
@@ -237,6 +355,6 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
     manifest = json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     write_manifest(out, prof.height, prof.width, frames, **manifest)
     state["complete"] = True
-    write_json_atomic(out / STATE_NAME, state)
+    _write_state(out, state)
     return RenderResult(out, len(frames), n_rendered, spp, scene_hash, seconds, False,
                         _read_json(out / MANIFEST_NAME) or {})

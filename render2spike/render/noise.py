@@ -51,7 +51,7 @@ import math
 import numpy as np
 
 #: every how many rendered frames the achieved render-noise ratio is measured (one extra launch each)
-VERIFY_EVERY = 16
+VERIFY_EVERY = 32
 #: the achieved ratio should lie in [BAND[0], BAND[1]] x target (0.15-0.25 for the default target 0.2)
 BAND = (0.75, 1.25)
 

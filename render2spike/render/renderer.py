@@ -43,9 +43,13 @@ class SceneRenderer:
     scene : Scene
     variant : str, optional
         Mitsuba variant (default: chosen by :func:`.backend.mitsuba`).
+    calibration : dict, optional
+        A light-level measurement made earlier (:meth:`measure_reference`, stored in a
+        frames folder's render state): reused instead of measuring again, so frames of a
+        resumed render share one emitter scale.
     """
 
-    def __init__(self, scene: Scene, variant: str | None = None):
+    def __init__(self, scene: Scene, variant: str | None = None, calibration: dict | None = None):
         self.scene = scene
         self.mi = mi = backend.mitsuba(variant)
         self.variant = mi.variant()
@@ -83,8 +87,11 @@ class SceneRenderer:
         self.cos4 = cos4_map(prof.height, prof.width, prof.pixel_pitch_m, self.focal_length_m)
         self.load_s = time.perf_counter() - t0
         self.reference = self._reference_point()
-        self.calibration = self.measure_reference()
-        warn_if_reference_shadowed(self.calibration, scene.path)
+        if calibration is not None:  # measured when the folder's render started: reused as stored
+            self.calibration = dict(calibration)
+        else:
+            self.calibration = self.measure_reference()
+            warn_if_reference_shadowed(self.calibration, scene.path)
         self.k = emitter_scale(scene.illuminance_lux, self.calibration["raw_e_total"])
 
     # --------------------------------------------------------------- motion
@@ -213,7 +220,17 @@ class SceneRenderer:
         return not bool(np.asarray(hit).reshape(-1)[0])
 
     def measure_reference(self) -> dict:
-        """Raw illuminance (V-weighted) at the reference at t = 0: analytic delta lights + irradiance meter."""
+        """Raw illuminance (V-weighted) at the reference at t = 0: analytic delta lights + irradiance meter.
+
+        Deterministic: the meter's samples come from fixed seeds, and its renders run on one
+        Dr.Jit thread, so the samples are summed into the meter's film in the same order every
+        time (with several threads the atomic accumulation order varies and the float32 sum
+        changes in its last bits, which an event-driven spike simulator turns into different
+        spike trains). On a CUDA variant the GPU's atomic sums have no fixed order; there the
+        measurement stored in the render state still keeps a resumed folder on one light level,
+        but two fresh renders may differ in the last bits. Raises InputError when no light
+        reaches the reference.
+        """
         self.set_time(0.0)
         p, n = self.reference["point"], self.reference["normal"]
         direct = 0.0
@@ -235,10 +252,20 @@ class SceneRenderer:
         meter_sensor = meter_sensor[0] if meter_sensor else meter_scene.sensors()[-1]
         # the meter measures E_raw with two independent halves -> its own MC error
         ss = np.random.SeedSequence([int(self.scene.render["seed"]), 0x5EED]).generate_state(2, dtype=np.uint32)
-        vals = [float(np.asarray(mi.render(meter_scene, sensor=meter_sensor, seed=int(s), spp=spp // 2)).ravel()[0])
-                for s in ss]
+        import drjit as dr
+        threads = dr.thread_count()
+        dr.set_thread_count(1)  # a fixed accumulation order: bitwise-reproducible light level
+        try:
+            vals = [float(np.asarray(mi.render(meter_scene, sensor=meter_sensor, seed=int(s), spp=spp // 2),
+                                     dtype=np.float64).ravel()[0]) for s in ss]
+        finally:
+            dr.set_thread_count(threads)
         meter = 0.5 * (vals[0] + vals[1])
         meter_se = abs(vals[0] - vals[1]) / 2.0
         total = direct + meter
+        if not (np.isfinite(total) and total > 0):
+            raise InputError(f"no light reaches the reference (raw illuminance {total!r}): check the "
+                             "lights' strengths and directions, the reference normal and occluders",
+                             path=self.scene.path, field="reference")
         return {"raw_e_direct_delta": direct, "raw_e_meter": meter, "raw_e_meter_stderr": meter_se,
                 "raw_e_total": total, "delta_lights": parts, "meter_spp": spp, **self.reference}

@@ -20,7 +20,15 @@ from sensor.profile import SensorProfile
 from sensor.spectral import SpectralCurve, blackbody_spd, flat_spd
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "schema" / "scene.schema.json"
-SCENES_DIR = Path(__file__).resolve().parents[2] / "scenes"
+
+
+def _scenes_dir() -> Path:
+    """The bundled scenes: ``render2spike/scenes`` in an installed wheel, the checkout's ``scenes/`` otherwise."""
+    installed = Path(__file__).resolve().parents[1] / "scenes"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "scenes"
+
+
+SCENES_DIR = _scenes_dir()
 
 #: defaults of the ``render`` block (documented in docs/render.md)
 RENDER_DEFAULTS = {
@@ -49,6 +57,11 @@ def _yaml():
     return yaml
 
 
+def bundled_scenes() -> list[str]:
+    """Names of the bundled scenes (usable wherever a scene file is asked for)."""
+    return sorted(q.stem for q in SCENES_DIR.glob("*.yaml")) if SCENES_DIR.is_dir() else []
+
+
 def resolve_scene_path(scene) -> Path:
     """A scene path as given, or the name of a bundled scene (``rotating_disk`` -> scenes/rotating_disk.yaml)."""
     p = Path(scene)
@@ -57,7 +70,7 @@ def resolve_scene_path(scene) -> Path:
     for cand in (SCENES_DIR / p.name, SCENES_DIR / f"{p.name}.yaml"):
         if cand.is_file():
             return cand
-    bundled = ", ".join(sorted(q.stem for q in SCENES_DIR.glob("*.yaml"))) if SCENES_DIR.is_dir() else "none"
+    bundled = ", ".join(bundled_scenes()) or "none"
     raise InputError(f"scene file not found (bundled scenes: {bundled})", path=scene)
 
 
@@ -173,6 +186,18 @@ def _describe(err) -> str:
     if v == "required":
         return err.message.replace("is a required property", "is required here")
     return err.message
+
+
+def check_finite(node, path=None, where: str = "") -> None:
+    """Every number in a scene mapping must be finite (YAML's .nan/.inf and --lux nan pass the schema's bounds)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            check_finite(v, path, f"{where}.{k}" if where else str(k))
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            check_finite(v, path, f"{where}.{i}" if where else str(i))
+    elif isinstance(node, float) and not np.isfinite(node):
+        raise InputError(f"must be a finite number, got {node!r}", path=path, field=where or "(top level)")
 
 
 def validate(data, path=None) -> None:
@@ -332,6 +357,7 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
         data["duration_s"] = float(duration_s)
     if profile is not None and isinstance(data.get("camera"), dict):
         data["camera"]["profile"] = profile
+    check_finite(data, path)
     validate(data, path)
     data["render"] = _merge_defaults(data.get("render", {}), RENDER_DEFAULTS)
     data["camera"] = _merge_defaults(data["camera"], CAMERA_DEFAULTS) if "rotation_deg" not in data["camera"] else \
@@ -346,6 +372,9 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
     if not has_lights:
         raise InputError("the scene has no light: add a 'lights' entry, an object 'emitter' or an 'xml' scene",
                          path=path, field="lights")
+    if not data["objects"] and "xml" not in data:
+        raise InputError("the scene has nothing to see: add at least one entry to 'objects' (or an 'xml' scene)",
+                         path=path, field="objects")
     if "reference" not in data:
         raise InputError("illuminance_lux needs a 'reference': {point: [x, y, z], normal: [x, y, z]} or "
                          "{object: NAME}", path=path, field="reference")

@@ -20,8 +20,9 @@ Model specs
 -----------
 ``ideal``, ``isi``, ``elssim`` (``sensor.models.MODELS``), optionally
 ``MODEL:RESET`` with a pixel-reset option of the sensor profile
-(``elssim:crossing``: ``profile.replace(reset="crossing")``), when the
-installed sensor package has that option.
+(``elssim:crossing``: ``profile.replace(reset="crossing")``; ``elssim:interval``:
+Algorithm 2 as published). A bare model name follows the profile's own reset
+(``vidar-default``: crossing).
 """
 
 from __future__ import annotations

@@ -92,7 +92,10 @@ def test_train_resume_evaluate_reconstruct_cli(tiny_davis, tmp_path, capsys):
     np.testing.assert_allclose(img, 0.2, atol=1 / 320 + 1e-6)  # ideal: theta / lambda = 5 intervals per spike
     assert (rec / "s_tfp_0000200.png").is_file() and (rec / "s_tfp_0000200.exr").is_file()
     assert _cli("reconstruct", sp, "--method", "rsir", "--checkpoint", run / "model.pt", "--out", rec,
-                "--formats", "npy") == 0
+                "--formats", "npy") == 2  # the folder holds the TFP results: refused without --overwrite
+    assert _cli("reconstruct", sp, "--method", "rsir", "--checkpoint", run / "model.pt", "--out", rec,
+                "--formats", "npy", "--overwrite") == 0
+    assert (rec / "s_tfp_0000200.png").is_file()  # --overwrite replaces only what it writes
     assert np.load(rec / "s_rsir_0000200.npy").shape == (8, 8)
     assert _cli("reconstruct", sp, "--method", "rsir", "--out", rec) == 2
     capsys.readouterr()

@@ -15,7 +15,7 @@ from tests.render.conftest import needs_mitsuba
 @needs_mitsuba
 def test_resume_after_interrupt(tmp_path, write_scene, monkeypatch):
     from render2spike.render import renderer as rmod
-    from render2spike.render.job import STATE_NAME, render_scene
+    from render2spike.render.job import load_state, render_scene
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
 
@@ -32,7 +32,7 @@ def test_resume_after_interrupt(tmp_path, write_scene, monkeypatch):
     monkeypatch.setattr(rmod.SceneRenderer, "render_frame", flaky)
     with pytest.raises(KeyboardInterrupt):
         render_scene(load_scene(p, ["render.spp=8"]), out, progress=False, log=lambda *a: None)
-    state = json.loads((out / STATE_NAME).read_text())
+    state = load_state(out)
     assert len(state["frames"]) == 2 and not (out / "frames.json").exists()
     done = {rec["file"]: (out / rec["file"]).read_bytes() for rec in state["frames"].values()}
     monkeypatch.setattr(rmod.SceneRenderer, "render_frame", orig)

@@ -56,6 +56,12 @@ def check_all(true, est, rep, z):
     n_int = rep.dark_intervals
     se = np.sqrt(p * (1 - p) / n_int) / (1 - p)
     assert (np.abs(est.dark_rate[n] - true.dark_rate[n]) / se).max() < zb(n.sum(), z)
+    # hot-pixel charge: each (mu_HP, sigma_HP) within its delta-method error (exact ISI model of the reset)
+    rows = N["hot_mu_sigma"]
+    assert len(rows) == int(true.hot_mask.sum())
+    for r, c, m, m_se, s, s_se, _ in rows:
+        assert abs(m - true.hot_mu[r, c]) < zb(2 * len(rows), z) * m_se, (r, c, m, m_se, true.hot_mu[r, c])
+        assert abs(s - true.hot_sigma[r, c]) < zb(2 * len(rows), z) * s_se, (r, c, s, s_se, true.hot_sigma[r, c])
     # reset
     assert N["reset"] == true.reset
     assert N["reset_confidence"] > 1 - 1e-3

@@ -75,13 +75,22 @@ def test_calibrate_cli_writes_profile_and_report(tmp_path, capsys):
         sensor.write_dat(p, sensor.simulate(np.full((3000, 8, 16), lv, np.float32), true, seed=10 + i))
         flats.append(str(p))
     rc = main(["calibrate", "--dark", *darks, "--flat", *flats, "--base", str(base_path),
-               "--out", str(tmp_path / "mycam.npz")])
+               "--flat-lux", "1", "2.5", "--out", str(tmp_path / "mycam.npz")])
     assert rc == 0
+    out = capsys.readouterr().out
+    assert "threshold" in out and "sensitivity" in out and "reset" in out
     est = sensor.SensorProfile.load(tmp_path / "mycam.npz")
     assert est.hot_mask.sum() == true.hot_mask.sum()
     assert (tmp_path / "mycam_report.png").stat().st_size > 10_000
     rep = json.loads((tmp_path / "mycam_report.json").read_text())
     assert rep["n_dark_recordings"] == 3 and rep["hot_pixels"] == int(true.hot_mask.sum())
+    for key in ("threshold_e", "threshold_se", "reset", "sensitivity_e_per_lux", "sensitivity_se", "hot_mu_sigma",
+                "level_information_share", "level_reason", "prnu_se_median"):
+        assert key in rep, key
+    assert len(rep["hot_mu_sigma"]) == rep["hot_pixels"]
+    assert main(["calibrate", "--dark", *darks, "--flat", *flats, "--base", str(base_path), "--flat-lux", "1",
+                 "--out", str(tmp_path / "bad.npz")]) == 2
+    assert "--flat-lux" in capsys.readouterr().err
 
 
 def test_info_on_a_bad_npz_is_one_clear_line(tmp_path, capsys):

@@ -86,6 +86,30 @@ def test_elssim_follows_the_profile_reset():
     p = crossing_profile(2, 8, 20.0)
     assert isinstance(get_model("elssim", p, "reference"), ELSSimCrossingStep)
     assert isinstance(get_model("elssim", p.replace(reset="interval"), "reference"), ELSSimStep)
+    from sensor import fast
+    if fast.HAVE_NUMBA:
+        assert isinstance(get_model("elssim", p, "fast"), fast.ELSSimCrossingFast)
+        assert isinstance(get_model("elssim", p.replace(reset="interval"), "fast"), fast.ELSSimFast)
+    # the other models have one pixel each and ignore the reset
+    lam = np.full((50, 2, 8), 3.0, np.float32)
+    np.testing.assert_array_equal(sensor.simulate(lam, p, "isi", seed=1),
+                                  sensor.simulate(lam, p.replace(reset="interval"), "isi", seed=1))
+
+
+def test_simulate_cli_reset_option_overrides_the_profile(tmp_path):
+    from render2spike.cli import main
+    prof = crossing_profile(4, 8, 20.0)
+    prof_path = prof.save(tmp_path / "cam.npz")
+    rate = np.full((300, 4, 8), 9.0, np.float32)
+    np.save(tmp_path / "rate.npy", rate)
+    for reset in RESETS:
+        out = tmp_path / f"{reset}.npz"
+        assert main(["simulate", str(tmp_path / "rate.npy"), "--out", str(out), "--profile", str(prof_path),
+                     "--reset", reset, "--quiet", "--seed", "2"]) == 0
+        from sensor.spikefile import read_spikes_with_meta
+        spikes, meta = read_spikes_with_meta(out)
+        np.testing.assert_array_equal(spikes, sensor.simulate(rate, prof.replace(reset=reset), seed=2))
+        assert meta["simulator"]["reset"] == reset
 
 
 # ---------------------------------------------------------------------------------- rate and start-up

@@ -1,0 +1,371 @@
+"""render2spike render benchmark: samples/s, pipeline overhead, keyframes per camera-second, noise, wait.
+
+One command::
+
+    python benchmarks/render.py                       # this code only
+    python benchmarks/render.py --old /tmp/perf-old   # and an older checkout, in the same run
+    python benchmarks/render.py --quick               # smoke run (one scene, few frames)
+
+writes ``benchmarks/results/render.md`` and ``render.json`` (atomically). Every
+measurement runs in a fresh subprocess (its own JIT and memory); ``--old PATH``
+runs the same measurement with ``PYTHONPATH=PATH`` (e.g. a ``git worktree add
+/tmp/perf-old main`` checkout), so old and new are compared in one session. The
+load average is recorded before and after.
+
+Sections
+--------
+1. **Throughput and overhead** (per bundled scene, at its 64 x 96 window and at
+   the full 250 x 400 sensor; fixed spp, adaptive refinement off): the pipeline
+   (``render_scene``: frame render, Phi/E conversion, EXR write, state file,
+   metric) per frame, from its first frame render to its return, against a
+   bare ``mi.render`` + ``np.asarray`` of the same loaded scene at the same
+   times and spp in the same process (after a warm-up render, so JIT
+   compilation is in neither). Samples/s = pixels x spp / bare seconds.
+2. **Keyframes per camera-second** (per scene at its window, 1, 5 and 50 lux,
+   fixed spp, the scene's own adaptive settings, a shortened clip).
+3. **Render-noise ratio** achieved at 1, 5 and 50 lux (rotating disk, window,
+   budget spp with the default ``max_spp`` 1024): the budget's spp and the ratio
+   measured on independent pairs at three times other than the pilot's.
+4. **Wait for one camera-second** (rotating disk at full resolution, 1, 5 and
+   50 lux, budget spp): setup (load + light level + pilot) + keyframes per
+   camera-second (section 2, same lux) x the measured seconds per frame
+   (``--wait-frames`` frames rendered the way each version renders them:
+   one launch plus 1/32 of a verification launch now; two halves before).
+   **Extrapolated** from those frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+SCENES = ("rotating_disk", "translating_object", "room_pan", "lambertian_plane")
+LUX = (1.0, 5.0, 50.0)
+
+
+# ------------------------------------------------------------------------------------------ measurements
+def _quiet():
+    import warnings
+    warnings.filterwarnings("ignore")
+
+
+def _load(name, sets=(), lux=None, duration_s=None):
+    from render2spike.render.scene import load_scene
+    return load_scene(name, list(sets), lux=lux, duration_s=duration_s)
+
+
+def m_overhead(cfg):
+    """Section 1 in this process: pipeline per frame vs bare mi.render on the same loaded scene."""
+    from render2spike.render import renderer as rmod
+    from render2spike.render.job import render_scene
+    _quiet()
+    n, spp = int(cfg["frames"]), int(cfg["spp"])
+    sets = [f"render.spp={spp}", "render.adaptive.enabled=false"] + list(cfg.get("sets", []))
+    sc0 = _load(cfg["scene"], sets)
+    rate = float(sc0.render["keyframe_rate_hz"])
+    sc = _load(cfg["scene"], sets, duration_s=(n - 1) / rate)
+    seen = {}
+    orig = rmod.SceneRenderer.render_frame
+
+    def wrapped(self, *a, **k):
+        if "t_first" not in seen:
+            seen["t_first"] = time.perf_counter()
+            seen["rnd"] = self
+        return orig(self, *a, **k)
+    rmod.SceneRenderer.render_frame = wrapped
+    try:
+        with tempfile.TemporaryDirectory() as d:
+            t_all = time.perf_counter()
+            res = render_scene(sc, d, progress=False, log=lambda *a: None)
+            t_end = time.perf_counter()
+    finally:
+        rmod.SceneRenderer.render_frame = orig
+    rnd = seen["rnd"]
+    mi = rnd.mi
+    times = [i / rate for i in range(res.n_frames)]
+    np.asarray(mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1, spp=spp))  # warm (kernels are cached anyway)
+    t = time.perf_counter()
+    for i, ts in enumerate(times):
+        rnd.set_time(ts)
+        np.asarray(mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1000 + i, spp=spp))
+    bare = time.perf_counter() - t
+    pipe = t_end - seen["t_first"]
+    from render2spike.render.noise import VERIFY_EVERY
+    n_verified = len(range(0, res.n_frames, VERIFY_EVERY))
+    H, W = rnd.height, rnd.width
+    return {"scene": cfg["scene"], "resolution": f"{H}x{W}", "spp": spp, "frames": res.n_frames,
+            "setup_s": seen["t_first"] - t_all, "pipeline_s_per_frame": pipe / res.n_frames,
+            "bare_s_per_frame": bare / res.n_frames, "overhead_ratio": pipe / bare,
+            "samples_per_s": H * W * spp * res.n_frames / bare, "variant": rnd.variant,
+            "verification_launches": n_verified}
+
+
+def m_keyframes(cfg):
+    """Section 2: keyframes per camera-second of render_scene at fixed spp (the scene's adaptive settings)."""
+    from render2spike.render.job import render_scene
+    _quiet()
+    sc = _load(cfg["scene"], [f"render.spp={cfg['spp']}"] + list(cfg.get("sets", [])), lux=cfg["lux"],
+               duration_s=cfg.get("duration_s"))
+    with tempfile.TemporaryDirectory() as d:
+        t = time.perf_counter()
+        res = render_scene(sc, d, progress=False, log=lambda *a: None)
+        wall = time.perf_counter() - t
+    ts = res.manifest.get("temporal_sampling", {})
+    return {"scene": cfg["scene"], "lux": cfg["lux"], "spp": int(cfg["spp"]), "duration_s": sc.duration_s,
+            "keyframes": res.n_frames, "keyframes_per_camera_s": res.n_frames / sc.duration_s,
+            "base_keyframes": ts.get("n_base"), "wall_s": wall}
+
+
+def _budget(rnd, sc):
+    """(spp, budget dict, how each frame is rendered) of this code version's noise budget."""
+    from render2spike.render import noise
+    ncfg, rcfg = sc.render["noise"], sc.render
+    W = int(ncfg["window_intervals"])
+    K = noise.keyframes_per_window(W, sc.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
+    rs = rnd.rate_scale()
+    if hasattr(noise, "pilot_budget"):
+        b, _ = noise.pilot_budget(rnd, sc, W, K, rs)
+        return b["spp"], b, W, K, "new"
+    # the budget of the version before (render2spike/render/job.py at main 3e4f9e4), verbatim in effect
+    from render2spike.render.photometry import to_physical
+    n1 = rnd.effective_spp(int(ncfg["pilot_spp"]))
+    n2 = rnd.effective_spp(4 * n1)
+    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(4, dtype=np.uint32)
+    pil = {}
+    for j, n in enumerate((n1, n2)):
+        pil[n] = [to_physical(*rnd.render_raw(0.0, int(s), n), rnd.k, rnd.f_number, rnd.transmission, rnd.cos4)[0]
+                  for s in seeds[2 * j:2 * j + 2]]
+    var1 = noise.pair_variance(*pil[n1]) * rs ** 2
+    var2 = noise.pair_variance(*pil[n2]) * rs ** 2
+    rate = 0.5 * (pil[n2][0] + pil[n2][1]) * rs
+    b = noise.choose_spp(rate, float(var1.mean()), n1, float(var2.mean()), n2, W, K, float(ncfg["target_ratio"]),
+                         int(ncfg["min_spp"]), int(ncfg["max_spp"]))
+    half, halves = rnd.frame_spp(b["spp"])
+    return half * halves, b, W, K, "old"
+
+
+def m_noise(cfg):
+    """Section 3 (and the per-frame part of 4): budget spp, achieved ratio, seconds per frame."""
+    from render2spike.render.noise import render_noise_ratio
+    from render2spike.render.renderer import SceneRenderer
+    _quiet()
+    sc = _load(cfg["scene"], ["render.noise.max_spp=1024"] + list(cfg.get("sets", [])), lux=cfg["lux"])
+    t = time.perf_counter()
+    rnd = SceneRenderer(sc)
+    spp, b, W, K, version = _budget(rnd, sc)
+    setup = time.perf_counter() - t
+    rs = rnd.rate_scale()
+    ratios = []
+    for ts in cfg.get("ratio_times", []):
+        f = rnd.render_frame(ts, 77, spp)  # both versions: phi_var of the returned frame
+        ratios.append(render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, W, K))
+    per_frame = None
+    if cfg.get("wait_frames"):
+        from sensor.frames import write_frame
+        n = int(cfg["wait_frames"])
+        with tempfile.TemporaryDirectory() as d:
+            # warm-up frame, untimed: a new spp compiles new kernels once per run (part of setup, not per frame)
+            np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=3, spp=spp if version == "new" else
+                                     rnd.frame_spp(spp)[0]))
+            t = time.perf_counter()
+            for i in range(n):
+                ts = 0.01 + i * 1e-3
+                if version == "new":
+                    f = rnd.render_frame(ts, 5, spp, variance=False)
+                else:
+                    f = rnd.render_frame(ts, 5, spp)
+                write_frame(Path(d) / f"f{i}.exr", f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=ts)
+            per_frame = (time.perf_counter() - t) / n
+        if version == "new":  # the first and every VERIFY_EVERY-th frame get a verification launch
+            from render2spike.render.noise import VERIFY_EVERY
+            per_frame *= 1.0 + 1.0 / VERIFY_EVERY
+    return {"scene": cfg["scene"], "lux": cfg["lux"], "resolution": f"{rnd.height}x{rnd.width}", "spp": int(spp),
+            "spp_needed": int(b.get("spp_needed", spp)), "predicted_ratio": b.get("predicted_ratio"),
+            "measured_ratios": ratios, "setup_s": setup, "s_per_frame": per_frame, "version": version}
+
+
+MEASURES = {"overhead": m_overhead, "keyframes": m_keyframes, "noise": m_noise}
+
+
+# ------------------------------------------------------------------------------------------ driver
+def _run(kind, cfg, tree: Path | None = None):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(tree or ROOT)
+    env.setdefault("PYTHONWARNINGS", "ignore")
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--one", kind, json.dumps(cfg)],
+                         capture_output=True, text=True, cwd=str(tree or ROOT), env=env)
+    if out.returncode != 0:
+        raise RuntimeError(f"{kind} {cfg} ({tree or 'this tree'}) failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _fmt(x, nd=2):
+    if x is None:
+        return ""
+    if isinstance(x, str):
+        return x
+    if abs(x) >= 1e5 or (0 < abs(x) < 1e-2):
+        return f"{x:.2e}"
+    return f"{x:.{nd}f}"
+
+
+def _dur(s):
+    return f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.1f} h"
+
+
+def write_report(res, meta, out_dir: Path) -> Path:
+    from sensor.fileio import write_json_atomic, write_text_atomic
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out_dir / "render.json", {"meta": meta, **res})
+    L = ["# render2spike render benchmark", "",
+         f"Command: `{meta['command']}`  ", f"Date: {meta['date']}  ",
+         f"Machine: {meta['cpu']}, {meta['cores']} cores; Mitsuba variant {meta.get('variant', '?')}  ",
+         f"Load average before / after: {meta['load_before']} / {meta['load_after']}  ",
+         f"Old code: {meta['old'] or 'not measured'}", "", "No GPU was lent to this run: CPU (LLVM) figures only.", ""]
+    if res.get("overhead"):
+        L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", "",
+              "The pipeline includes the noise verification launches (the first and every 32nd frame: "
+              "1 extra launch in 32 frames).", "",
+              "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead |",
+              "|---|---|---|---|---|---|---|---|"]
+        for r in res["overhead"]:
+            L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
+                     f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
+                     f"{_fmt(r['overhead_ratio'], 3)} |")
+        L.append("")
+    if res.get("keyframes"):
+        L += ["## Keyframes per camera-second (window, fixed spp, shortened clip)", "",
+              "| scene | lux | spp | clip s | base keyframes | keyframes/s now | keyframes/s old |", "|---|---|---|---|---|---|---|"]
+        old = {(r["scene"], r["lux"]): r for r in res.get("keyframes_old", [])}
+        for r in res["keyframes"]:
+            o = old.get((r["scene"], r["lux"]))
+            o_kf = "" if o is None else f"{o['keyframes_per_camera_s']:.0f}"
+            L.append(f"| {r['scene']} | {r['lux']:g} | {r['spp']} | {r['duration_s']:g} | {r['base_keyframes']} | "
+                     f"{r['keyframes_per_camera_s']:.0f} | {o_kf} |")
+        L.append("")
+    if res.get("noise"):
+        L += ["## Render-noise ratio (target 0.2, band 0.15-0.25; rotating disk, max_spp 1024)", "",
+              "| version | lux | resolution | budget spp | predicted | measured (3 times) |", "|---|---|---|---|---|---|"]
+        for r in res.get("noise", []) + res.get("noise_old", []):
+            L.append(f"| {r['version']} | {r['lux']:g} | {r['resolution']} | {r['spp']} | {_fmt(r['predicted_ratio'], 3)} | "
+                     + ", ".join(f"{x:.3f}" for x in r["measured_ratios"]) + " |")
+        L.append("")
+    if res.get("wait"):
+        L += ["## Wait for one camera-second (rotating disk, full 250 x 400, budget spp) - EXTRAPOLATED", "",
+              f"From {meta['wait_frames']} measured frames per point x keyframes per camera-second at the same lux "
+              "(window measurement above) + setup.", "",
+              "| version | lux | spp | s/frame | keyframes/s | setup s | wait per camera-second |",
+              "|---|---|---|---|---|---|---|"]
+        for r in res["wait"]:
+            L.append(f"| {r['version']} | {r['lux']:g} | {r['spp']} | {_fmt(r['s_per_frame'])} | "
+                     f"{r['keyframes_per_camera_s']:.0f} | {_fmt(r['setup_s'], 1)} | {_dur(r['wait_s'])} |")
+        for lux, ratio in res.get("wait_speedup", {}).items():
+            L.append(f"\nWait old / new at {lux} lux: **{ratio:.2f}x**")
+        L.append("")
+    write_text_atomic(out_dir / "render.md", "\n".join(L))
+    return out_dir / "render.md"
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--old", help="an older checkout to measure in the same run (PYTHONPATH=OLD)")
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES))
+    ap.add_argument("--lux", type=float, nargs="+", default=list(LUX))
+    ap.add_argument("--spp", type=int, default=16, help="fixed spp of sections 1-2 (default 16)")
+    ap.add_argument("--frames", type=int, default=32, help="frames per overhead run at the window (default 32)")
+    ap.add_argument("--full-frames", type=int, default=32, help="frames per overhead run at full res (default 32)")
+    ap.add_argument("--full-spp", type=int, default=4, help="spp of the full-resolution overhead runs (default 4)")
+    ap.add_argument("--clip", type=float, default=0.04, help="camera seconds of the keyframe runs (default 0.04)")
+    ap.add_argument("--wait-frames", type=int, default=2, help="frames timed per wait point (default 2)")
+    ap.add_argument("--skip", nargs="*", default=[], choices=["overhead", "keyframes", "noise", "wait"])
+    ap.add_argument("--quick", action="store_true", help="smoke run: rotating disk, few frames, 50 lux")
+    ap.add_argument("--out", default=str(HERE / "results"))
+    ap.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.one:
+        print(json.dumps(MEASURES[a.one[0]](json.loads(a.one[1]))))
+        return 0
+    if a.quick:
+        a.scenes, a.lux, a.frames, a.full_frames, a.clip, a.wait_frames = ["rotating_disk"], [50.0], 6, 2, 0.01, 1
+    old = Path(a.old).resolve() if a.old else None
+    full = ["camera.profile=vidar-default"]
+    load_before = tuple(round(x, 2) for x in os.getloadavg())
+    res = {}
+
+    def say(msg):
+        print(f"[{time.strftime('%H:%M:%S')} load {os.getloadavg()[0]:.1f}] {msg}", flush=True)
+    if "overhead" not in a.skip:
+        res["overhead"] = []
+        for sc in a.scenes:
+            for sets, n, spp in (([], a.frames, a.spp), (full, a.full_frames, a.full_spp)):
+                r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets})
+                res["overhead"].append(r)
+                say(f"overhead {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
+                    f"{r['overhead_ratio']:.3f}")
+    if "keyframes" not in a.skip:
+        for key, tree in (("keyframes", None), ("keyframes_old", old)):
+            if key == "keyframes_old" and old is None:
+                continue
+            res[key] = []
+            for sc in a.scenes:
+                for lux in a.lux:
+                    clip = a.clip if sc != "lambertian_plane" else None
+                    r = _run("keyframes", {"scene": sc, "spp": a.spp, "lux": lux, "duration_s": clip}, tree)
+                    res[key].append(r)
+                    say(f"{key} {sc} {lux:g} lux: {r['keyframes_per_camera_s']:.0f} keyframes/s")
+    if "noise" not in a.skip or "wait" not in a.skip:
+        for key, tree in (("noise", None), ("noise_old", old)):
+            if key == "noise_old" and old is None:
+                continue
+            res[key] = []
+            for lux in a.lux:
+                r = _run("noise", {"scene": "rotating_disk", "lux": lux, "ratio_times": [0.013, 0.051, 0.087]}, tree)
+                res[key].append(r)
+                say(f"{key} {lux:g} lux: spp {r['spp']}, ratio {r['measured_ratios']}")
+    if "wait" not in a.skip:
+        res["wait"] = []
+        kf = {(r["lux"], v): r["keyframes_per_camera_s"] for k, v in (("keyframes", "new"), ("keyframes_old", "old"))
+              for r in res.get(k, []) if r["scene"] == "rotating_disk"}
+        for version, tree in (("new", None), ("old", old)):
+            if version == "old" and old is None:
+                continue
+            for lux in a.lux:
+                r = _run("noise", {"scene": "rotating_disk", "lux": lux, "sets": full, "wait_frames": a.wait_frames},
+                         tree)
+                k = kf.get((lux, version))
+                if k is None:
+                    continue
+                r.update(keyframes_per_camera_s=k, wait_s=r["setup_s"] + k * r["s_per_frame"], version=version)
+                res["wait"].append(r)
+                say(f"wait {version} {lux:g} lux full res: spp {r['spp']}, {r['s_per_frame']:.2f} s/frame, "
+                    f"{_dur(r['wait_s'])} per camera-second (extrapolated)")
+        by = {(r["version"], r["lux"]): r["wait_s"] for r in res["wait"]}
+        res["wait_speedup"] = {f"{lux:g}": by[("old", lux)] / by[("new", lux)] for lux in a.lux
+                               if ("old", lux) in by and ("new", lux) in by}
+    cpu = ""
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    meta = {"command": "python benchmarks/render.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"), "cpu": cpu, "cores": len(os.sched_getaffinity(0)),
+            "load_before": load_before, "load_after": tuple(round(x, 2) for x in os.getloadavg()),
+            "old": str(old) if old else None, "wait_frames": a.wait_frames,
+            "variant": (res.get("overhead") or [{}])[0].get("variant")}
+    path = write_report(res, meta, Path(a.out))
+    print(f"wrote {path} and {path.with_suffix('.json')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""Helpers shared by the subcommands: output folders that protect themselves.
+
+Every command that writes checks its output first (:func:`check_output`):
+
+* an output that is one of the command's inputs (or holds one) is refused;
+* an existing output file, or an existing non-empty output folder, is refused
+  unless ``--overwrite`` is given;
+* unfinished temp files (``.NAME.part-PID-*``) that a killed writer left in
+  the output's folder are removed (:func:`sensor.lock.sweep_parts`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sensor.errors import InputError
+
+OVERWRITE_HELP = "replace an existing output (without it, an existing output is refused)"
+
+
+def add_overwrite(p, help: str = OVERWRITE_HELP) -> None:
+    p.add_argument("--overwrite", action="store_true", help=help)
+
+
+def _same_or_inside(out: Path, src: Path) -> bool:
+    """Whether ``out`` is ``src`` or lies inside the folder ``src``."""
+    try:
+        out, src = out.resolve(), src.resolve()
+    except OSError:
+        return False
+    return out == src or src in out.parents
+
+
+def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = False, flag: str = "--out",
+                 say=None) -> Path:
+    """Check an output path before anything is written; returns it as a Path.
+
+    ``folder``: the output is a folder (refused when it exists, is not empty and ``overwrite`` is off);
+    else a file (refused when it exists and ``overwrite`` is off). ``inputs``: paths read by the command.
+    """
+    from sensor.lock import sweep_parts
+    out = Path(out)
+    for src in inputs:
+        if src is None:
+            continue
+        src = Path(src)
+        if src.exists() and _same_or_inside(out, src):
+            raise InputError(f"the output would overwrite (or sit inside) the input {src}; choose another {flag}",
+                             path=out, field=flag)
+    if folder:
+        if out.exists() and not out.is_dir():
+            raise InputError("exists and is not a folder", path=out, field=flag)
+        if out.is_dir():
+            sweep_parts(out, log=say)
+            if not overwrite and any(p for p in out.iterdir() if not p.name.startswith(".")):
+                raise InputError("the output folder exists and is not empty; pass --overwrite to write into it "
+                                 "anyway, or choose another folder", path=out, field=flag)
+    else:
+        if out.is_dir():
+            raise InputError("is a folder; give a file name", path=out, field=flag)
+        if out.parent.is_dir():
+            sweep_parts(out.parent, log=say)
+        if out.exists() and not overwrite:
+            raise InputError("the output file exists; pass --overwrite to replace it, or choose another name",
+                             path=out, field=flag)
+    return out
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the description's and examples' line breaks; appends "(default: X)" only where X says something.
+
+    No "(default: None)" or "(default: False)", and nothing added to a help text that already names its default.
+    """
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        d = action.default
+        if ("default" in text or d is None or d is False or d is argparse.SUPPRESS or d == []
+                or action.option_strings == [] or isinstance(action, argparse._HelpAction)):
+            return text
+        return f"{text} (default: %(default)s)" if text else "(default: %(default)s)"

@@ -1,0 +1,223 @@
+"""Same scene and seeds -> bitwise-identical frames and spikes: two full runs, and a killed-then-resumed render.
+
+The scene has an environment light, so the light-level measurement (the irradiance meter behind
+``illuminance_lux``) is a Monte Carlo render whose float32 sum used to depend on the thread schedule;
+the tiny scene's meter gave 4 different values in 8 calls before it was made deterministic.
+"""
+
+import copy
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.render.conftest import BASE, needs_mitsuba
+
+pytestmark = [pytest.mark.render, needs_mitsuba]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _scene(tmp_path) -> Path:
+    d = copy.deepcopy(BASE)
+    d["lights"].append({"name": "sky", "type": "environment", "strength": 0.05})
+    d["objects"].append({"name": "disk", "shape": "disk", "radius": 0.1, "position": [0, 0, 0.05],
+                         "material": {"reflectance": {"texture": "checker", "squares": 4, "low": 0.1, "high": 0.8}},
+                         "motion": {"parametric": [{"rotate": {"axis": [0, 0, 1], "omega_rad_s": 20.0}}]}})
+    d["reference"] = {"object": "disk"}
+    d["render"]["spp"] = 8
+    p = tmp_path / "repro.yaml"
+    p.write_text(yaml.safe_dump(d, sort_keys=False))
+    return p
+
+
+def _cli(*args, **kw):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "render2spike", *args], capture_output=True, text=True,
+                          timeout=300, env=env, cwd=str(ROOT), **kw)
+
+
+def _frames(folder):
+    from sensor.frames import read_frames
+    seq = read_frames(folder)
+    return [(f["file"], f["time_s"]) for f in seq.manifest["frames"]], [seq.read(i) for i in range(len(seq))]
+
+
+def _assert_same_frames(a, b):
+    (la, fa), (lb, fb) = _frames(a), _frames(b)
+    assert la == lb
+    for x, y in zip(fa, fb):
+        assert x.phi.tobytes() == y.phi.tobytes() and x.illuminance_lux.tobytes() == y.illuminance_lux.tobytes()
+
+
+def test_light_measurement_is_deterministic(tmp_path):
+    """Repeated measurements in one process (with several threads they used to differ in the last bits)."""
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    r = SceneRenderer(load_scene(_scene(tmp_path)))
+    vals = {json.dumps(r.measure_reference(), sort_keys=True) for _ in range(6)}
+    assert len(vals) == 1
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("repro")
+    scene = _scene(tmp)
+    outs = []
+    for name in ("a", "b"):
+        r = _cli("run", str(scene), "--out", str(tmp / name), "--quiet", "--seed", "5")
+        assert r.returncode == 0, r.stderr
+        outs.append(tmp / name)
+    return scene, outs
+
+
+def test_two_runs_give_identical_frames_and_spikes(two_runs):
+    from sensor.spikefile import read_spikes
+    _, (a, b) = two_runs
+    ma = json.loads((a / "frames" / "frames.json").read_text())
+    mb = json.loads((b / "frames" / "frames.json").read_text())
+    assert ma["reference"] == mb["reference"] and ma["emitter_scale_w_per_raw"] == mb["emitter_scale_w_per_raw"]
+    assert ma["reference"]["raw_e_meter"] > 0  # the environment light really goes through the meter
+    _assert_same_frames(a / "frames", b / "frames")
+    sa = read_spikes(a / "spikes.npz")
+    sb = read_spikes(b / "spikes.npz")
+    assert sa.any() and np.array_equal(sa, sb)
+    names = [f for f, _ in _frames(a / "frames")[0]]
+    assert names == sorted(names)  # file names sort in time order
+
+
+def test_killed_and_resumed_render_is_byte_identical(two_runs, tmp_path, monkeypatch):
+    from render2spike.pipeline import simulate_frames
+    from render2spike.render import renderer as rmod
+    from render2spike.render.job import load_state, render_scene
+    from render2spike.render.scene import load_scene
+    from sensor.spikefile import read_spikes
+
+    scene, (a, _) = two_runs
+    out = tmp_path / "frames"
+    orig = rmod.SceneRenderer.render_frame
+    calls = {"n": 0}
+
+    def killed(self, *args, **kw):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise KeyboardInterrupt  # the render dies after two finished frames
+        return orig(self, *args, **kw)
+
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", killed)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(load_scene(scene), out, progress=False, log=lambda *x: None)
+    assert len(load_state(out)["frames"]) == 2 and not (out / "frames.json").exists()
+    assert not (out / ".render2spike.lock").exists()  # the lock went with the dead render
+    # a journal line cut short by the kill is ignored, not fatal
+    with open(out / "render_journal.jsonl", "a") as f:
+        f.write('{"tick": 9, "fi')
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", orig)
+    # the resumed render must reuse the stored light-level measurement, never measure again
+    monkeypatch.setattr(rmod.SceneRenderer, "measure_reference",
+                        lambda self: pytest.fail("light level measured again on resume"))
+    res = render_scene(load_scene(scene), out, progress=False, log=lambda *x: None)
+    assert res.n_rendered == res.n_frames - 2
+    _assert_same_frames(a / "frames", out)
+    sc = load_scene(scene)
+    spikes, _ = simulate_frames(out, sc.profile, "elssim", 5, progress=False)
+    ref = read_spikes(a / "spikes.npz")
+    assert np.array_equal(spikes.window(0, spikes.shape[0]), ref)
+
+
+def test_second_render_into_a_locked_folder_is_refused(two_runs, tmp_path, monkeypatch):
+    """Two renders at once: the second (another process) is refused, naming the holder; nothing is mixed."""
+    from render2spike.render import renderer as rmod
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+
+    scene, _ = two_runs
+    out = tmp_path / "frames"
+    orig = rmod.SceneRenderer.render_frame
+    seen = {}
+
+    def with_rival(self, *args, **kw):
+        if "rc" not in seen:  # while this render holds the folder, a second one starts
+            r = _cli("render", str(scene), "--out", str(out), "--lux", "7", "--overwrite", "--quiet")
+            seen["rc"], seen["err"] = r.returncode, r.stderr
+        return orig(self, *args, **kw)
+
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", with_rival)
+    render_scene(load_scene(scene), out, progress=False, log=lambda *x: None)
+    assert seen["rc"] == 2, seen["err"]
+    assert f"pid {os.getpid()}" in seen["err"] and "already writing" in seen["err"]
+    assert "Traceback" not in seen["err"] and len(seen["err"].strip().splitlines()) == 1
+    from sensor.frames import read_frames
+    seq = read_frames(out)
+    assert {seq.read(i).header["target_lux"] for i in range(len(seq))} == {100.0}
+
+
+def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
+    from sensor.lock import LOCK_NAME, FolderLock, holder, sweep_parts
+    import socket
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname(),
+                                                  "started_utc": "2026-01-01T00:00:00+00:00"}))
+    assert holder(tmp_path) is None
+    notes = []
+    with FolderLock(tmp_path, log=notes.append):
+        assert holder(tmp_path)["pid"] == os.getpid()
+    assert "stale lock" in notes[0] and not (tmp_path / LOCK_NAME).exists()
+    # temp files of the dead writer are swept, those of a live one (this process) kept
+    (tmp_path / f".spikes.part-{dead.pid}-abc.npz").write_bytes(b"x" * 10)
+    (tmp_path / f".spikes.part-{os.getpid()}-abc.npz").write_bytes(b"x")
+    old = tmp_path / ".frame.part-xyz.exr"  # no pid in the name: removed once old
+    old.write_bytes(b"x")
+    os.utime(old, (time.time() - 7200, time.time() - 7200))
+    gone = sweep_parts(tmp_path)
+    assert sorted(p.name for p in gone) == sorted([f".spikes.part-{dead.pid}-abc.npz", old.name])
+
+
+def test_run_into_a_folder_of_another_seed_is_refused(two_runs):
+    scene, (a, _) = two_runs
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in a.rglob("*"))
+    r = _cli("run", str(scene), "--out", str(a), "--quiet", "--seed", "6")
+    assert r.returncode == 2 and "seed" in r.stderr and "--overwrite" in r.stderr, r.stderr
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in a.rglob("*")) == before
+
+
+def test_render_into_a_folder_of_other_files_is_refused(two_runs, tmp_path):
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    scene, _ = two_runs
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds no render2spike frames"):
+        render_scene(load_scene(scene), tmp_path, progress=False, log=lambda *x: None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_progress_bar_never_goes_backwards(tmp_path, monkeypatch):
+    """The bar counts camera time: its total is fixed and its position only grows, refinements included."""
+    import tqdm.auto
+
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    record = []
+
+    class Recorder(tqdm.auto.tqdm):
+        def update(self, n=1):
+            out = super().update(n)
+            record.append((self.n, self.total))
+            return out
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recorder)
+    p = _scene(tmp_path)
+    # a fast disk and a loose base rate: adaptive refinement adds frames between base keyframes
+    sc = load_scene(p, ["objects.disk.motion.parametric.0.rotate.omega_rad_s=200", "render.keyframe_rate_hz=100",
+                        "render.adaptive.max_rate_hz=800", "render.adaptive.tolerance=0.05"])
+    res = render_scene(sc, tmp_path / "frames", progress=True, log=lambda *x: None)
+    assert res.manifest["temporal_sampling"]["n_refined"] > 0
+    ns = [n for n, _ in record]
+    assert len({t for _, t in record}) == 1 and ns == sorted(ns) and ns[-1] == pytest.approx(record[0][1])
