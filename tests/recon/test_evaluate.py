@@ -149,15 +149,16 @@ def test_reconstruct_any_size_windows_and_third_party_files(tmp_path, capsys):
     dat = write_dat(tmp_path / "clip.dat", spikes)
     rec = tmp_path / "rec"
     assert _cli("reconstruct", dat, "--height", 13, "--width", 24, "--method", "rsir", "--checkpoint", ck,
-                "--out", rec, "--formats", "npy") == 0
+                "--out", rec, "--formats", "npy", "--overwrite") == 0
     assert np.load(rec / "clip_rsir_0000125.npy").shape == (13, 24)
     assert _cli("reconstruct", dat, "--height", 13, "--width", 24, "--method", "rsir", "--checkpoint", ck,
-                "--windows", 5, "--window-length", 50, "--out", rec, "--formats", "npy", "--center", 100) == 0
+                "--windows", 5, "--window-length", 50, "--out", rec, "--formats", "npy", "--center", 100,
+                "--overwrite") == 0
     assert _cli("reconstruct", dat, "--height", 13, "--width", 24, "--method", "rsir", "--checkpoint", ck,
-                "--windows", 10, "--window-length", 32, "--out", rec) == 2
+                "--windows", 10, "--window-length", 32, "--out", rec, "--overwrite") == 2
     assert "N*L <= 250" in capsys.readouterr().err
     assert _cli("reconstruct", dat, "--height", 13, "--width", 24, "--method", "tfp-dt-denoised", "--out", rec,
-                "--formats", "npy") == 0
+                "--formats", "npy", "--overwrite") == 0
     img = np.load(rec / "clip_tfp-dt-denoised_0000125.npy")
     assert img.shape == (13, 24) and np.all(np.isfinite(img))
 
@@ -183,5 +184,5 @@ def test_evaluate_on_a_spikezoo_style_pairs_folder(tmp_path, capsys):
     assert all(np.isfinite(float(r["PSNR"])) for r in rows)
     # 301 intervals cannot hold the default 10 x 32: a clear error
     assert _cli("evaluate", "--data", f"pairs:{tmp_path / 'zoo'}:height=16:width=24", "--methods", "tfp",
-                "--out", out, "--quiet") == 2
+                "--out", out, "--quiet", "--overwrite") == 2
     assert "windows=N:window=L" in capsys.readouterr().err
