@@ -186,3 +186,37 @@ def test_evaluate_on_a_spikezoo_style_pairs_folder(tmp_path, capsys):
     assert _cli("evaluate", "--data", f"pairs:{tmp_path / 'zoo'}:height=16:width=24", "--methods", "tfp",
                 "--out", out, "--quiet", "--overwrite") == 2
     assert "windows=N:window=L" in capsys.readouterr().err
+
+
+UHSR = __import__("pathlib").Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real" / "uhsr.npz"
+
+
+@pytest.mark.torch
+@pytest.mark.skipif(not UHSR.is_file(), reason="../shared/data/real/uhsr.npz not present")
+def test_reconstruct_and_evaluate_the_uhsr_recording(tmp_path, capsys):
+    """The real UHSR clip (Spike-Zoo 'spk' layout, 200 intervals of 250 x 250) through both commands."""
+    from PIL import Image
+
+    from recon.classic import tfp
+    from recon.nets import RSIRConfig, RSIRNet, save_checkpoint
+    from sensor.spikefile import read_spikes
+    cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8, mask_width=8,
+                          normalise="mean", cumulative=True, linearise=True)
+    ck = save_checkpoint(tmp_path / "m.pt", RSIRNet(cfg))
+    rec = tmp_path / "rec"
+    assert _cli("reconstruct", UHSR, "--method", "rsir", "--checkpoint", ck, "--out", rec, "--formats", "npy") == 0
+    img = np.load(rec / "uhsr_rsir_0000100.npy")  # 10 windows of 20 intervals (200 // 10)
+    assert img.shape == (250, 250) and np.all(np.isfinite(img))
+    # a pairs folder around the real clip (reference: the TFP of all 200 intervals, a stand-in)
+    (tmp_path / "p" / "spike").mkdir(parents=True)
+    (tmp_path / "p" / "gt").mkdir()
+    (tmp_path / "p" / "spike" / "uhsr.npz").symlink_to(UHSR.resolve())
+    ref = tfp(read_spikes(UHSR))
+    Image.fromarray(np.round(np.clip(ref / ref.max(), 0, 1) * 65535).astype(np.uint16)).save(
+        tmp_path / "p" / "gt" / "uhsr.png")
+    out = tmp_path / "ev"
+    assert _cli("evaluate", "--data", f"pairs:{tmp_path / 'p'}:windows=10:window=20",
+                "--methods", f"tfp,tfp-dt-denoised,rsir:{ck}=net", "--out", out, "--quiet") == 0
+    rows = list(csv.DictReader((out / "table.csv").open()))
+    assert [r["Methods"] for r in rows] == ["TFP (M=200)", "TFP-DT + Gaussian (tuned)", "net"]
+    capsys.readouterr()
