@@ -127,6 +127,8 @@ def invert_rate(reset, rate, k, mu, f):
     p = -np.expm1(-mu)
     r = np.asarray(rate, np.float64)
     k, p, f, r = np.broadcast_arrays(np.asarray(k, np.float64), p, np.asarray(f, np.float64), r)
+    shape = r.shape
+    k, p, f, r = (np.ascontiguousarray(a).reshape(-1) for a in (k, p, f, r))  # any shape in, the same shape out
     ok = (r > p) & (r < 1)
     target = 1.0 / np.where(ok, r, 0.5)
     # start: mean ISI ~ k / lam + 1/2 + f (the read-out rounds the crossing time up), then Newton on the exact mean
@@ -144,7 +146,7 @@ def invert_rate(reset, rate, k, mu, f):
         new = np.clip(lo + step, lo * 0.7, lo * 1.3)
         lam[act] = new
         act = act[np.abs(new - lo) > 1e-9 * lo]
-    return lam / k
+    return (lam / k).reshape(shape)
 
 
 def readout_moments(reset, x, k, mu, f):
