@@ -127,8 +127,8 @@ def invert_rate(reset, rate, k, mu, f):
     p = -np.expm1(-mu)
     r = np.asarray(rate, np.float64)
     k, p, f, r = np.broadcast_arrays(np.asarray(k, np.float64), p, np.asarray(f, np.float64), r)
-    shape = r.shape  # work on flat copies: the Newton loop indexes pixels by flat index
-    k, p, f, r = (np.ravel(a).astype(np.float64) for a in (k, p, f, r))
+    shape = r.shape
+    k, p, f, r = (np.ascontiguousarray(a).reshape(-1) for a in (k, p, f, r))  # any shape in, the same shape out
     ok = (r > p) & (r < 1)
     target = 1.0 / np.where(ok, r, 0.5)
     # start: mean ISI ~ k / lam + 1/2 + f (the read-out rounds the crossing time up), then Newton on the exact mean
