@@ -192,20 +192,81 @@ def tfp_deadtime(spikes, profile, window: int | None = None, center: int | None 
     numpy.ndarray float32 (H, W)
         ``rate_e`` [e-/interval]; saturated pixels get ``4 k``.
     """
-    from sensor.effects import count_threshold, dark_event_probability
     s = _check_spikes(spikes)
-    if tuple(s.shape[1:]) != tuple(profile.shape):
-        raise InputError(f"spikes are {s.shape[1]}x{s.shape[2]} but profile '{profile.name}' is "
+    return deadtime_correct(tfp(s, window, center), profile, correct_hot_pixels)
+
+
+def deadtime_correct(rate, profile, correct_hot_pixels: bool = True) -> np.ndarray:
+    """The inversion step of :func:`tfp_deadtime` on an observed spike rate map.
+
+    ``rate`` float (H, W) [spikes per interval] (TFP, or a smoothed TFP) ->
+    ``rate_e`` float32 (H, W) [e-/interval], per pixel with the profile's
+    ``k``, refractory fraction, dark probability and hot-pixel charge.
+    """
+    from sensor.effects import count_threshold, dark_event_probability
+    r = np.asarray(rate, np.float64)
+    if tuple(r.shape) != tuple(profile.shape):
+        raise InputError(f"spikes are {r.shape[0]}x{r.shape[1]} but profile '{profile.name}' is "
                          f"{profile.height}x{profile.width}", field="profile")
-    r = tfp(s, window, center).astype(np.float64)
     gain = profile.prnu_gain.astype(np.float64)
     k = count_threshold(profile.threshold_e, gain)
-    lam = invert_renewal_rate(r, k, profile.refractory_fraction.astype(np.float64),
-                              dark_event_probability(profile.dark_rate))
+    if getattr(profile, "reset", "interval") == "crossing":
+        lam = _invert_crossing(r, k, profile.refractory_fraction.astype(np.float64),
+                               profile.dark_rate.astype(np.float64))
+    else:
+        lam = invert_renewal_rate(r, k, profile.refractory_fraction.astype(np.float64),
+                                  dark_event_probability(profile.dark_rate))
     if correct_hot_pixels and profile.hot_mask.any():
         hot = profile.hot_mask
         lam[hot] = np.maximum(lam[hot] - profile.hot_mu[hot] * profile.threshold_e / gain[hot], 0.0)
     return lam.astype(np.float32)
+
+
+#: x = lam / k nodes of the crossing-reset read-out table (0, then log-spaced to saturation)
+_CROSSING_X = np.concatenate([[0.0], np.geomspace(1e-4, 1.0, 31)])
+_CROSSING_CACHE: dict = {}
+
+
+def _crossing_curves(k: int, f: float, mus: tuple) -> np.ndarray:
+    """Read-out spike rate (len(mus), len(_CROSSING_X)) of a stationary crossing-reset pixel (cached)."""
+    from sensor.theory import crossing_rates
+    key = (int(k), round(float(f), 9), mus)
+    if key not in _CROSSING_CACHE:
+        out = np.empty((len(mus), _CROSSING_X.size))
+        for i, mu in enumerate(mus):
+            out[i, 0] = -np.expm1(-mu)  # no light: dark events only
+            for j, x in enumerate(_CROSSING_X[1:], start=1):
+                out[i, j] = crossing_rates(x * k, k, f, mu)[1]
+        _CROSSING_CACHE[key] = np.maximum.accumulate(out, axis=1)  # monotone for interpolation
+    return _CROSSING_CACHE[key]
+
+
+def _invert_crossing(r, k, f, mu) -> np.ndarray:
+    """Invert the crossing-reset read-out rate per pixel: ``rate_e`` [e-/interval] (``sensor.theory.crossing_rates``).
+
+    The curve ``r(x)``, ``x = lam / k``, is tabulated at the median ``k`` and
+    refractory fraction of the pixels (``r`` depends on ``k`` only through
+    ``x`` to O(1/sqrt(k)) for the thresholds of ~2000 e- of a spike camera) and
+    at up to four dark rates spanning the pixels'; each pixel interpolates
+    between the two nearest dark-rate curves, inverts in ``x`` and scales by
+    its own ``k``. Rates at or below the dark floor give 0; saturated read-outs
+    give ``lam = k`` (one firing per interval).
+    """
+    k_med = int(np.median(k))
+    f_med = float(np.median(f))
+    lo, hi = float(mu.min()), float(mu.max())
+    mus = (lo,) if hi <= lo * 1.0001 else tuple(float(v) for v in np.geomspace(max(lo, 1e-9), hi, 4))
+    curves = _crossing_curves(k_med, f_med, tuple(round(m, 12) for m in mus))
+    xs = np.stack([np.interp(r, c, _CROSSING_X) for c in curves])  # (n_mu, H, W)
+    if len(mus) == 1:
+        x = xs[0]
+    else:
+        lm = np.log(np.asarray(mus))
+        pos = np.clip(np.interp(np.log(np.maximum(mu, 1e-9)), lm, np.arange(len(mus))), 0, len(mus) - 1)
+        i0 = np.minimum(np.floor(pos).astype(int), len(mus) - 2)
+        w = pos - i0
+        x = np.take_along_axis(xs, i0[None], 0)[0] * (1 - w) + np.take_along_axis(xs, i0[None] + 1, 0)[0] * w
+    return x * k
 
 
 CLASSIC_METHODS = ("tfp", "tfi", "tfp-dt")

@@ -48,7 +48,7 @@ DAVIS_SPLIT_FILE = DATA_DIR / "davis2017_split.json"
 #: the synthetic sensor drawn when no profile is named (values of the bundled vidar-default profile, see
 #: docs/sensor.md: threshold 2000 e-, dark 94 Hz = 0.0047 events per 50 us interval, log spread 0.37,
 #: PRNU sigma 0.058, 0.1 % hot pixels)
-DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC)
+DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC, reset="crossing")  # vidar-default's reset (docs/sensor.md)
 _KIND_KEYS = {"davis": 1, "rendered": 2, "sdmd": 3}
 
 
@@ -118,6 +118,19 @@ def parse_hw(text, field_name: str) -> tuple[int, int]:
     return h, w
 
 
+def uniform_profile(height: int, width: int) -> SensorProfile:
+    """The default sensor where none is known (real recordings without a profile): every pixel alike.
+
+    The vidar-like threshold, refractory time, reset and the *mean* dark rate of
+    :data:`DEFAULT_SYNTHETIC`, with no PRNU, no dark-rate spread and no hot
+    pixels (nothing drawn at random: the pixels' real fixed pattern is unknown).
+    """
+    d = DEFAULT_SYNTHETIC
+    return SensorProfile.synthetic(height, width, threshold_e=d["threshold_e"], dark_rate=d["dark_rate"],
+                                   refractory_s=d["refractory_s"], reset=d["reset"],
+                                   name=f"recon-uniform-{height}x{width}")
+
+
 def resolve_profile(spec: str | SensorProfile | None, height: int, width: int, seed: int = 0) -> SensorProfile:
     """A profile of exactly ``height x width``: a bundled name / path (centre window if larger) or 'synthetic'."""
     if isinstance(spec, SensorProfile):
@@ -143,7 +156,8 @@ class _Base:
 
     def __init__(self, *, model: str = "elssim", seed: int = 0, n_windows: int = RSIR_N_WINDOWS,
                  window: int = RSIR_WINDOW, intervals: int | None = None, warmup: int = 64,
-                 include_spikes: bool = False, max_items: int | None = None, implementation: str = "fast"):
+                 include_spikes: bool = False, max_items: int | None = None, implementation: str = "fast",
+                 start: str = "phase"):
         from sensor.models import MODELS
         if model not in MODELS:
             from sensor.errors import UnknownMethodError
@@ -153,6 +167,9 @@ class _Base:
         self.M = self.n_windows * self.window
         self.L = max(self.M, int(intervals or self.M))
         self.warmup = int(warmup)
+        if start not in ("phase", "zero"):
+            raise InputError(f"start must be 'phase' or 'zero', got '{start}'", field="start")
+        self.start = start
         self.include_spikes = include_spikes
         self.max_items = max_items
         self.implementation = implementation
@@ -180,7 +197,24 @@ class _Base:
                       meta=meta)
 
     def _simulate(self, lam, profile, sim_seed):
+        """Simulate ``warmup + L`` intervals and drop the warm-up.
+
+        ``start='phase'`` (default): during the warm-up each pixel integrates a
+        constant rate that brings it to a random charge ``u * threshold``
+        (``u`` uniform in [0, 1), its own seed), so the item starts with random
+        spike phases as a camera that has been running does (with a threshold
+        of ~2000 e- the ISIs are nearly deterministic and a common zero start
+        would keep the pixels in step and delay the first spike of dim pixels
+        by a whole ISI). ``start='zero'``: the warm-up sees the item's own
+        light (every pixel starts from zero charge).
+        """
         from sensor import simulate
+        if self.warmup and self.start == "phase":
+            lam = np.array(lam, np.float32, copy=True)
+            ss = np.random.SeedSequence(int(sim_seed), spawn_key=(7,))
+            u = np.random.Generator(np.random.PCG64(ss)).uniform(0.0, 1.0, lam.shape[1:])
+            per_e = profile.threshold_e / np.maximum(profile.prnu_gain.astype(np.float64), 0.05)
+            lam[:self.warmup] = (u * per_e / self.warmup).astype(np.float32)[None]
         spikes = simulate(lam, profile, self.model, seed=sim_seed, implementation=self.implementation)
         return spikes[self.warmup:]
 
@@ -210,6 +244,11 @@ def _select_split(names_present: list[str], split: str, split_file, root) -> lis
     wanted = list(sp[split])
     have = set(names_present)
     chosen = [n for n in wanted if n in have]
+    missing = [n for n in wanted if n not in have]
+    if missing and chosen:
+        import warnings
+        warnings.warn(f"{root}: {len(missing)} of the {len(wanted)} '{split}' sequences of {split_file} are "
+                      f"missing and skipped: {', '.join(missing)}", UserWarning, stacklevel=3)
     if not chosen:
         raise InputError(f"none of the {len(wanted)} '{split}' sequences of {split_file} are in this folder "
                          f"(it has {len(have)}: {', '.join(sorted(have)[:5])}{'...' if len(have) > 5 else ''})",
@@ -403,12 +442,19 @@ class RenderedDataset(_Base):
         Intervals between item starts (default L).
     spikes : str, optional
         Stored spike file per folder.
+    lux : float or (lo, hi), optional
+        Rescale the rendered light so the scene's reference illuminance is
+        ``lux`` (rendering is linear in the light): log-uniform per training
+        item, the geometric mean otherwise. Default: as rendered.
+    split : str
+        ``train`` draws a random crop offset and light level per item and epoch;
+        anything else uses the centre crop and the fixed level.
     """
 
     kind = "rendered"
 
     def __init__(self, paths, *, profile=None, crop=None, stride: int | None = None, spikes: str | None = None,
-                 **kw):
+                 lux=None, split: str = "test", **kw):
         from sensor import read_frames
         from sensor.rates import n_intervals_spanned
         super().__init__(**kw)
@@ -420,12 +466,25 @@ class RenderedDataset(_Base):
         if len(shapes) != 1:
             raise InputError(f"frames folders differ in resolution: {sorted(shapes)}", field="paths")
         H, W = shapes.pop()
+        self.res = (H, W)
         self.crop = tuple(crop) if crop is not None else (H, W)
         if self.crop[0] > H or self.crop[1] > W:
             raise InputError(f"crop {self.crop} is larger than the frames ({H}x{W})", field="crop")
+        self.train = split == "train"
         self.top, self.left = (H - self.crop[0]) // 2, (W - self.crop[1]) // 2
-        full = resolve_profile(profile, H, W, seed=self.seed)
-        self.profile = full if self.crop == (H, W) else full.window(self.top, self.left, *self.crop)
+        self.profile_full = resolve_profile(profile, H, W, seed=self.seed)
+        self.profile = self.profile_full.window(self.top, self.left, *self.crop) if self.crop != (H, W) \
+            else self.profile_full
+        if lux is not None:
+            lux = (float(lux), float(lux)) if np.isscalar(lux) else (float(lux[0]), float(lux[1]))
+            if not (0 < lux[0] <= lux[1]):
+                raise InputError(f"lux must be > 0 (lo <= hi), got {lux}", field="lux")
+            for s in self.seqs:
+                if not float(s.manifest.get("illuminance_lux", 0) or 0) > 0:
+                    raise InputError("lux= needs the frames' illuminance_lux in frames.json", path=s.folder)
+        self.lux = lux
+        if spikes and lux is not None:
+            raise InputError("lux= rescales the rendered light; it cannot apply to stored spikes", field="lux")
         self.spikes_name = spikes
         self.stride = int(stride or self.L)
         need = self.L + (0 if spikes else self.warmup)
@@ -441,11 +500,10 @@ class RenderedDataset(_Base):
 
     @functools.lru_cache(maxsize=8)
     def _rates(self, si: int):
+        """rate_e of the whole frame (the profile is uniform in QE and pitch) and the frame times."""
         from sensor import photoelectron_rate
         s = self.seqs[si]
-        ch, cw = self.crop
-        phi = s.phi_stack()[:, self.top:self.top + ch, self.left:self.left + cw]
-        return photoelectron_rate(phi, self.profile), s.times_s
+        return photoelectron_rate(s.phi_stack(), self.profile_full), s.times_s
 
     @functools.lru_cache(maxsize=4)
     def _stored(self, si: int):
@@ -454,37 +512,51 @@ class RenderedDataset(_Base):
         p = Path(self.spikes_name)
         p = p if p.is_absolute() else folder / p
         s, meta = read_spikes_with_meta(p)
-        ch, cw = self.crop
-        return s[:, self.top:self.top + ch, self.left:self.left + cw], meta
+        return s, meta
 
     def sample(self, i: int) -> Sample:
         from sensor import interval_rates
         if not 0 <= i < len(self):
             raise IndexError(i)
         si, m0 = self.items[i]
-        rate_kf, t_s = self._rates(si)
-        _, sim_seed = _children(item_seed_sequence(self.seed, self.kind, self.epoch, i))
+        rate_full, t_s = self._rates(si)
+        rng, sim_seed = _children(item_seed_sequence(self.seed, self.kind, self.epoch if self.train else 0, i))
+        H, W = self.res
+        ch, cw = self.crop
+        if self.train and (ch, cw) != (H, W):
+            top, left = int(rng.integers(0, H - ch + 1)), int(rng.integers(0, W - cw + 1))
+            prof = self.profile_full.window(top, left, ch, cw)
+        else:
+            top, left, prof = self.top, self.left, self.profile
+        rate_kf = rate_full[:, top:top + ch, left:left + cw]
+        meta = {"folder": str(self.seqs[si].folder)}
+        if self.lux is not None:
+            lux = float(np.exp(rng.uniform(np.log(self.lux[0]), np.log(self.lux[1])))) if self.train \
+                else float(np.sqrt(self.lux[0] * self.lux[1]))
+            rate_kf = rate_kf * np.float32(lux / float(self.seqs[si].manifest["illuminance_lux"]))
+            meta["lux"] = lux
         if self.spikes_name:
             stored, meta_s = self._stored(si)
             if stored.shape[0] < m0 + self.L:
                 raise InputError(f"stored spikes hold {stored.shape[0]} intervals; item needs up to {m0 + self.L}",
                                  path=self.seqs[si].folder / self.spikes_name)
-            spikes = stored[m0:m0 + self.L]
+            spikes = stored[m0:m0 + self.L, top:top + ch, left:left + cw]
             lam_c = interval_rates(rate_kf, t_s, n_intervals=1, m0=m0 + self.L // 2,
-                                   interval_s=self.profile.interval_s)[0]
-            meta = {"folder": str(self.seqs[si].folder), "m0": m0, "stored": True, "model": meta_s.get("model")}
+                                   interval_s=prof.interval_s)[0]
+            meta.update(m0=m0, stored=True, model=meta_s.get("model"))
         else:
-            lam = interval_rates(rate_kf, t_s, n_intervals=self.warmup + self.L, m0=m0,
-                                 interval_s=self.profile.interval_s)
-            spikes = self._simulate(lam, self.profile, sim_seed)
+            lam = interval_rates(rate_kf, t_s, n_intervals=self.warmup + self.L, m0=m0, interval_s=prof.interval_s)
+            spikes = self._simulate(lam, prof, sim_seed)
             lam_c = lam[self.warmup + self.L // 2]
-            meta = {"folder": str(self.seqs[si].folder), "m0": m0 + self.warmup, "model": self.model,
-                    "sim_seed": sim_seed}
-        return self._finish(spikes, lam_c, self.profile, f"{self.seqs[si].folder.name}@{meta['m0']}", meta)
+            meta.update(m0=m0 + self.warmup, model=self.model, sim_seed=sim_seed)
+        return self._finish(spikes, lam_c, prof, f"{self.seqs[si].folder.name}@{meta['m0']}", meta)
 
 
 # ------------------------------------------------------------------------------------------------------- SDMD
 REFERENCE_NAMES = ("reference.png", "reference.tif", "reference.tiff", "reference.exr", "reference.npy")
+SPIKE_NAMES = ("spikes.dat", "spikes.npz", "spikes.h5")
+REFERENCE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".npy", ".jpg", ".jpeg")
+SPIKE_SUFFIXES = (".dat", ".npz", ".h5", ".hdf5")
 
 
 class SDMDDataset(_Base):
@@ -510,22 +582,29 @@ class SDMDDataset(_Base):
     your calibration in ``meta.json`` when you have one.
 
     ``profile`` (a calibrated profile of the camera) supplies the sensor maps
-    and the dead-time-corrected TFP; without it the maps are "unknown" (dark 0,
-    gain 1) and tfp-dt uses the default synthetic sensor.
+    and the dead-time-corrected TFP; without it both use a uniform sensor
+    (:func:`uniform_profile`: the mean vidar dark rate, gain 1, no hot pixels).
     """
 
     kind = "sdmd"
 
     def __init__(self, root, split: str = "test", *, height: int = 250, width: int = 400, drop_columns: int = 0,
-                 profile=None, split_file=None, **kw):
+                 profile=None, split_file=None, layout: str | None = None, **kw):
         super().__init__(**kw)
         self.root = Path(root)
         if not self.root.is_dir():
             raise InputError("SDMD folder does not exist", path=self.root)
-        present = sorted(p.name for p in self.root.iterdir() if p.is_dir() and (p / "spikes.dat").is_file())
+        self.layout = layout
+        self.pairs = {}
+        for p in sorted(self.root.iterdir()):
+            spk = next((p / n for n in SPIKE_NAMES if (p / n).is_file()), None) if p.is_dir() else None
+            if spk is not None:
+                ref = next((p / n for n in REFERENCE_NAMES if (p / n).is_file()), None)
+                self.pairs[p.name] = (spk, ref, p / "meta.json")
+        present = sorted(self.pairs)
         if not present:
-            raise InputError("no scene folders with spikes.dat inside (see docs/recon.md, SDMD layout)",
-                             path=self.root)
+            raise InputError(f"no scene folders with {' / '.join(SPIKE_NAMES)} inside (see docs/recon.md, SDMD "
+                             "layout)", path=self.root)
         self.split = split
         sf = Path(split_file) if split_file else self.root / "split.json"
         if split != "all" and not sf.is_file():
@@ -536,8 +615,8 @@ class SDMDDataset(_Base):
         self.items = list(self.scenes)
 
     def _scene_meta(self, scene: str) -> dict:
-        p = self.root / scene / "meta.json"
-        if not p.is_file():
+        p = self.pairs[scene][2]
+        if p is None or not p.is_file():
             return {}
         try:
             return json.loads(p.read_text())
@@ -545,7 +624,6 @@ class SDMDDataset(_Base):
             raise InputError(f"invalid JSON ({exc})", path=p) from exc
 
     def sample(self, i: int) -> Sample:
-        from sensor import read_dat
         if not 0 <= i < len(self):
             raise IndexError(i)
         scene = self.items[i]
@@ -553,17 +631,20 @@ class SDMDDataset(_Base):
         H = int(meta.get("height", self.height))
         W = int(meta.get("width", self.width))
         drop = int(meta.get("drop_columns", self.drop))
-        dat = self.root / scene / "spikes.dat"
-        allspikes = read_dat(dat, H, W, drop_columns=drop)
+        from .reconstruct import read_recording
+        dat, ref_path, _ = self.pairs[scene]
+        allspikes, _ = read_recording(dat, layout=meta.get("layout", self.layout), height=H, width=W,
+                                      drop_columns=drop)
+        H, W, drop = allspikes.shape[1], allspikes.shape[2], 0
         T = allspikes.shape[0]
         if T < self.L:
-            raise InputError(f"recording has {T} intervals; an item needs {self.L}", path=dat)
+            raise InputError(f"recording has {T} intervals; an item needs {self.L} ({self.n_windows} windows of "
+                             f"{self.window}): add windows=N:window=L with N*L <= {T} to the data spec", path=dat)
         c = int(meta.get("center", T // 2))
         start = max(0, min(c - self.L // 2, T - self.L))
         spikes = allspikes[start:start + self.L]
-        ref_path = next((self.root / scene / n for n in REFERENCE_NAMES if (self.root / scene / n).is_file()), None)
         if ref_path is None:
-            raise InputError(f"no reference image ({', '.join(REFERENCE_NAMES)})", path=self.root / scene)
+            raise InputError(f"no reference image ({', '.join(REFERENCE_NAMES)})", path=dat.parent)
         ref = read_reference(ref_path, meta.get("transfer"))
         Wd = W - drop
         if ref.shape != (H, Wd):
@@ -574,13 +655,54 @@ class SDMDDataset(_Base):
         else:
             factor = float(tfp(allspikes).mean()) / max(float(ref.mean()), 1e-12)
         prof = None if self.profile_spec in (None, "") else resolve_profile(self.profile_spec, H, Wd, self.seed)
-        maps = sensor_maps(prof) if prof is not None else np.stack([np.zeros((H, Wd)), np.ones((H, Wd))]).astype(
-            np.float32)
+        maps = sensor_maps(prof if prof is not None else uniform_profile(H, Wd))
         c_local = c - start
         windows = tfp_windows(spikes, self.n_windows, self.window, center=c_local)
         target = (ref * np.float32(factor))[None].astype(np.float32)
         return Sample(windows=windows, target=target, maps=maps,
                       spikes=spikes if self.include_spikes else None, center=c_local,
-                      profile=prof or resolve_profile(None, H, Wd, self.seed), name=scene,
+                      profile=prof or uniform_profile(H, Wd), name=scene,
                       meta={"scene": scene, "lux": meta.get("lux"), "spikes_per_ref_unit": factor,
                             "profile_given": prof is not None, "window": self.window, "n_windows": self.n_windows})
+
+
+class PairsDataset(SDMDDataset):
+    """Spike recordings with reference images matched by file stem (the Spike-Zoo test-set layout).
+
+    Layout (either)::
+
+        ROOT/spike/NAME.dat|.npz|.h5    ROOT/gt/NAME.png|.tif|.exr|.npy|.jpg     (Spike-Zoo)
+        ROOT/NAME.dat|.npz|.h5          ROOT/NAME.png|...                        (flat)
+
+    plus optional ``ROOT/NAME.json`` (the ``meta.json`` keys of
+    :class:`SDMDDataset`). Spike files of any layout ``sensor.read_spikes``
+    reads (``layout=`` to force one; ``.dat`` size from ``height``/``width``).
+    Every pair is an item (``split`` is ignored unless a ``split_file`` is
+    given); the reference is converted to ideal spikes per interval as for SDMD.
+    """
+
+    kind = "pairs"
+
+    def __init__(self, root, split: str = "all", *, height: int = 250, width: int = 400, drop_columns: int = 0,
+                 profile=None, split_file=None, layout: str | None = None, **kw):
+        _Base.__init__(self, **kw)
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise InputError("pairs folder does not exist", path=self.root)
+        spike_dir = self.root / "spike" if (self.root / "spike").is_dir() else self.root
+        ref_dir = self.root / "gt" if (self.root / "gt").is_dir() else self.root
+        refs = {p.stem: p for p in sorted(ref_dir.iterdir()) if p.suffix.lower() in REFERENCE_SUFFIXES}
+        self.pairs = {}
+        for p in sorted(spike_dir.iterdir()):
+            if p.is_file() and p.suffix.lower() in SPIKE_SUFFIXES and p.stem in refs:
+                self.pairs[p.stem] = (p, refs[p.stem], self.root / f"{p.stem}.json")
+        if not self.pairs:
+            raise InputError("no spike file (.dat/.npz/.h5) with a reference image of the same name (spike/ + gt/, "
+                             "or side by side)", path=self.root)
+        self.split = split
+        names = sorted(self.pairs)
+        self.scenes = names if not split_file else _select_split(names, split, split_file, self.root)
+        self.height, self.width, self.drop = int(height), int(width), int(drop_columns)
+        self.profile_spec = profile
+        self.layout = layout
+        self.items = list(self.scenes)

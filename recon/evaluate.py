@@ -6,6 +6,9 @@ Methods (``--methods`` of ``render2spike evaluate``, comma-separated)
 ``tfp:N``      TFP over N centred intervals (needs ``intervals=N`` in the data spec when N > 320)
 ``tfi``        TFI at the centre interval, using the item's spikes
 ``tfp-dt``     dead-time-corrected TFP (``recon.classic.tfp_deadtime``) with the item's profile
+``tfp-dt-denoised``   the strong classic baseline: ``tfp-dt`` then a Gaussian whose width is chosen from the
+               item's mean spike count with the table tuned on training data (``recon.baselines``)
+``tfp-dt-denoised:S`` the same with a fixed width of S pixels
 ``rsir:CKPT``  an RSIR-architecture checkpoint; ``rsir:CKPT=LABEL`` names its row
 
 Metrics and normalisation
@@ -37,6 +40,8 @@ from .classic import tfi, tfp, tfp_deadtime
 from .imageio import to_display, white_level
 
 WHITE_PERCENTILE = 99.5
+#: the method names ``--methods`` accepts (stable: studies refer to them)
+METHOD_NAMES = ("tfp", "tfp:N", "tfi", "tfp-dt", "tfp-dt-denoised", "tfp-dt-denoised:S", "rsir:CKPT")
 
 
 @dataclass
@@ -68,13 +73,23 @@ def parse_methods(text: str) -> list[Method]:
             out.append(Method("tfi", None, "TFI"))
         elif kind in ("tfp-dt", "tfpdt"):
             out.append(Method("tfp-dt", None, "TFP dead-time corrected"))
+        elif kind == "tfp-dt-denoised":
+            if arg:
+                try:
+                    sig = float(arg)
+                except ValueError:
+                    raise InputError(f"tfp-dt-denoised:S needs a width in pixels, got '{arg}'",
+                                     field="--methods") from None
+                out.append(Method("tfp-dt-denoised", str(sig), f"TFP-DT + Gaussian (sigma={sig:g})"))
+            else:
+                out.append(Method("tfp-dt-denoised", None, "TFP-DT + Gaussian (tuned)"))
         elif kind == "rsir":
             if not arg:
                 raise InputError("rsir needs a checkpoint: rsir:PATH[=LABEL]", field="--methods")
             path, _, label = arg.partition("=")
             out.append(Method("rsir", path, label or f"RSIR-arch ({Path(path).parent.name or Path(path).stem})"))
         else:
-            raise UnknownMethodError("reconstruction method", kind, ("tfp", "tfp:N", "tfi", "tfp-dt", "rsir:CKPT"))
+            raise UnknownMethodError("reconstruction method", kind, METHOD_NAMES)
     if not out:
         raise InputError("no methods given", field="--methods")
     return out
@@ -106,6 +121,12 @@ def apply_method(m: Method, sample) -> np.ndarray:
         M = sample.windows.shape[0] * _window_of(sample)
         lam = tfp_deadtime(sample.spikes, sample.profile, M, sample.center)
         return lam / np.float32(sample.profile.threshold_e)
+    if m.kind == "tfp-dt-denoised":
+        from .baselines import tfp_dt_denoised
+        M = sample.windows.shape[0] * _window_of(sample)
+        lam = tfp_dt_denoised(sample.spikes, sample.profile, M, sample.center,
+                              sigma=None if m.arg is None else float(m.arg))
+        return lam / np.float32(sample.profile.threshold_e)
     if m.kind == "rsir":
         import torch
         model = m.model
@@ -113,7 +134,7 @@ def apply_method(m: Method, sample) -> np.ndarray:
         w = torch.from_numpy(sample.windows[None]).to(dev)
         maps = torch.from_numpy(sample.maps[None]).to(dev)
         return model.reconstruct(w, maps)[0, 0].cpu().numpy().astype(np.float32)
-    raise UnknownMethodError("reconstruction method", m.kind, ("tfp", "tfi", "tfp-dt", "rsir"))
+    raise UnknownMethodError("reconstruction method", m.kind, METHOD_NAMES)
 
 
 def _window_of(sample) -> int:
@@ -131,7 +152,12 @@ def normalise(img, white: float) -> np.ndarray:
 
 def psnr_ssim(pred, ref) -> tuple[float, float]:
     """PSNR [dB] and SSIM of ``pred`` against ``ref`` (both linear, same units) after :func:`normalise`."""
-    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    try:
+        from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+    except ImportError as exc:
+        from sensor.errors import DependencyError
+        raise DependencyError("PSNR/SSIM need scikit-image (a core dependency of render2spike): "
+                              "pip install 'scikit-image>=0.22'") from exc
     w = white_level(ref, WHITE_PERCENTILE)
     p, r = normalise(pred, w), normalise(ref, w)
     # an exact match would give +inf and poison averages: cap at the PSNR of a 1e-6 RMS error (120 dB)
@@ -151,6 +177,10 @@ def evaluate(dataset, methods: list[Method], out_dir, *, n_examples: int = 4, pr
         raise InputError("the evaluation data hold no items", field="--data")
     per_item, examples = [], []
     n = len(dataset)
+    M = getattr(dataset, "n_windows", 10) * getattr(dataset, "window", 32)
+    for m in methods:  # the network-input length of these data (320 unless windows/window say otherwise)
+        if m.kind == "tfp" and m.arg is None:
+            m.label = f"TFP (M={M})"
     show = set(np.unique(np.linspace(0, n - 1, min(n_examples, n)).round().astype(int)).tolist()) if n_examples else set()
     for i in tqdm(range(n), desc="evaluate", unit="item", disable=not progress):
         s = dataset.sample(i)

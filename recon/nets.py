@@ -109,6 +109,71 @@ class HaarIDWT(nn.Module):
         return haar_idwt(y)
 
 
+_R2 = 0.5 ** 0.5
+
+
+def wavelet_dwt(x: "torch.Tensor", lo: "torch.Tensor", hi: "torch.Tensor") -> "torch.Tensor":
+    """One level of a separable two-tap wavelet transform with filters ``lo``, ``hi`` (each 2 taps).
+
+    Rows then columns: ``L = lo[0] x0 + lo[1] x1``, ``H = hi[0] x0 + hi[1] x1``
+    over horizontal, then vertical pixel pairs. Bands as in :func:`haar_dwt`
+    (``[LL, HL, LH, HH]``); with ``lo = (1, 1)/sqrt 2`` and ``hi = (1, -1)/sqrt 2``
+    it equals :func:`haar_dwt` (RSIR's ``FreTransfer``, whose taps are trainable).
+    """
+    _check_4d(x, "x", even=True)
+    e, o = x[..., 0::2], x[..., 1::2]
+    xl, xh = lo[0] * e + lo[1] * o, hi[0] * e + hi[1] * o
+    band = lambda t, f: f[0] * t[..., 0::2, :] + f[1] * t[..., 1::2, :]  # noqa: E731
+    return torch.cat([band(xl, lo), band(xh, lo), band(xl, hi), band(xh, hi)], dim=1)
+
+
+def wavelet_idwt(y: "torch.Tensor", glo: "torch.Tensor", ghi: "torch.Tensor") -> "torch.Tensor":
+    """Synthesis of :func:`wavelet_dwt`: ``x0 = glo[0] L + ghi[0] H``, ``x1 = glo[1] L + ghi[1] H`` per axis.
+
+    With ``glo = (1, 1)/sqrt 2`` and ``ghi = (1, -1)/sqrt 2`` it equals :func:`haar_idwt`.
+    """
+    _check_4d(y, "y")
+    if y.shape[1] % 4:
+        raise InputError(f"y must have 4C channels (LL, HL, LH, HH); got {y.shape[1]}", field="y")
+    ll, hl, lh, hh = torch.chunk(y, 4, dim=1)
+    B, C, h, w = ll.shape
+
+    def up_rows(lo_, hi_):
+        out = y.new_empty(B, C, 2 * h, lo_.shape[-1])
+        out[..., 0::2, :] = glo[0] * lo_ + ghi[0] * hi_
+        out[..., 1::2, :] = glo[1] * lo_ + ghi[1] * hi_
+        return out
+    xl, xh = up_rows(ll, lh), up_rows(hl, hh)
+    out = y.new_empty(B, C, 2 * h, 2 * w)
+    out[..., 0::2] = glo[0] * xl + ghi[0] * xh
+    out[..., 1::2] = glo[1] * xl + ghi[1] * xh
+    return out
+
+
+class LearnedDWT(nn.Module):
+    """Module form of :func:`wavelet_dwt` with trainable taps, initialised to Haar (4 parameters)."""
+
+    def __init__(self):
+        super().__init__()
+        self.lo = nn.Parameter(torch.tensor([_R2, _R2]))
+        self.hi = nn.Parameter(torch.tensor([_R2, -_R2]))
+
+    def forward(self, x):
+        return wavelet_dwt(x, self.lo, self.hi)
+
+
+class LearnedIDWT(nn.Module):
+    """Module form of :func:`wavelet_idwt` with trainable taps, initialised to inverse Haar (4 parameters)."""
+
+    def __init__(self):
+        super().__init__()
+        self.glo = nn.Parameter(torch.tensor([_R2, _R2]))
+        self.ghi = nn.Parameter(torch.tensor([_R2, -_R2]))
+
+    def forward(self, y):
+        return wavelet_idwt(y, self.glo, self.ghi)
+
+
 # ---------------------------------------------------------------------------------------- windowed attention
 def window_partition(x: "torch.Tensor", window: int) -> "torch.Tensor":
     """(B, H, W, C) -> (B * H/w * W/w, w*w, C): non-overlapping windows of ``window`` x ``window`` pixels."""
@@ -226,18 +291,31 @@ class NoiseInverse(nn.Module):
     Input: window (B, 1, H, W) and features of the maps (B, n_maps, H, W), all
     in the network's scaled units. Output (B, 1, H, W): the window plus a
     learned per-pixel correction (last layer initialised to zero, so the
-    module starts as the identity).
+    module starts as the identity). ``depth`` hidden layers of ``width``;
+    ``refine`` adds a second per-pixel MLP on the corrected window alone
+    (RSIR's ``FPN_Refine``), also residual and identity-initialised.
     """
 
-    def __init__(self, n_maps: int = 2, width: int = 16):
+    def __init__(self, n_maps: int = 2, width: int = 16, depth: int = 2, refine: bool = False):
         super().__init__()
-        self.net = nn.Sequential(nn.Conv2d(1 + n_maps, width, 1), nn.LeakyReLU(0.1), nn.Conv2d(width, width, 1),
-                                 nn.LeakyReLU(0.1), nn.Conv2d(width, 1, 1))
-        nn.init.zeros_(self.net[-1].weight)
-        nn.init.zeros_(self.net[-1].bias)
+        self.net = _pixel_mlp(1 + n_maps, width, depth)
+        self.refine = _pixel_mlp(1, width, depth) if refine else None
 
     def forward(self, x, maps):
-        return x + self.net(torch.cat([x, maps], dim=1))
+        x = x + self.net(torch.cat([x, maps], dim=1))
+        if self.refine is not None:
+            x = x + self.refine(x)
+        return x
+
+
+def _pixel_mlp(cin: int, width: int, depth: int) -> nn.Sequential:
+    layers = [nn.Conv2d(cin, width, 1), nn.LeakyReLU(0.1)]
+    for _ in range(max(int(depth), 1) - 1):
+        layers += [nn.Conv2d(width, width, 1), nn.LeakyReLU(0.1)]
+    layers.append(nn.Conv2d(width, 1, 1))
+    nn.init.zeros_(layers[-1].weight)
+    nn.init.zeros_(layers[-1].bias)
+    return nn.Sequential(*layers)
 
 
 class TemporalFusion(nn.Module):
@@ -258,20 +336,38 @@ class TemporalFusion(nn.Module):
 class Denoiser(nn.Module):
     """Residual blocks, then windowed self-attention blocks (alternately shifted), then a 3x3 conv to 4 bands.
 
-    Predicts a residual added to the fused bands (see docs/recon.md, deviations).
+    With ``attn_dim`` > 0 the attention stage works at that width, as RSIR's
+    Swin stage does: a 1x1 patch embedding (``width -> attn_dim``, patch size 1)
+    with LayerNorm, the blocks, a final LayerNorm and a bias-free linear
+    projection back to ``width``. Predicts a residual added to the fused bands
+    (see docs/recon.md, deviations).
     """
 
     def __init__(self, width: int = 16, res_blocks: int = 2, attn_depth: int = 2, heads: int = 2,
-                 window: int = 8, mlp_ratio: float = 2.0):
+                 window: int = 8, mlp_ratio: float = 2.0, attn_dim: int = 0):
         super().__init__()
         blocks = [ResidualBlock(4, width)] + [ResidualBlock(width, width) for _ in range(max(res_blocks - 1, 0))]
         self.res = nn.Sequential(*blocks)
-        self.attn = nn.Sequential(*[AttentionBlock(width, heads, window, shift=(window // 2) * (i % 2),
+        dim = int(attn_dim) if attn_dim else width
+        self.embed = None
+        if attn_dim:
+            self.embed = nn.Conv2d(width, dim, 1)
+            self.embed_norm = nn.LayerNorm(dim)
+            self.out_norm = nn.LayerNorm(dim)
+            self.unembed = nn.Linear(dim, width, bias=False)
+        self.attn = nn.Sequential(*[AttentionBlock(dim, heads, window, shift=(window // 2) * (i % 2),
                                                    mlp_ratio=mlp_ratio) for i in range(attn_depth)])
         self.out = nn.Conv2d(width, 4, 3, padding=1)
 
     def forward(self, bands):
-        return bands + self.out(self.attn(self.res(bands)))
+        f = self.res(bands)
+        if self.embed is None:
+            f = self.attn(f)
+        else:
+            t = self.embed_norm(self.embed(f).permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
+            t = self.attn(t).permute(0, 2, 3, 1)
+            f = self.unembed(self.out_norm(t)).permute(0, 3, 1, 2)
+        return bands + self.out(f)
 
 
 class Refine(nn.Module):
@@ -287,15 +383,46 @@ class Refine(nn.Module):
 
 
 # ------------------------------------------------------------------------------------------------ the network
+#: RSIRConfig presets of ``render2spike train --size`` (see :meth:`RSIRConfig.preset`)
+PRESETS = ("tiny", "paper", "rsir")
+
+
 @dataclass
 class RSIRConfig:
-    """Width and depth of the network; the tiny defaults of :meth:`tiny` train on a CPU in minutes.
+    """Width and depth of the network and how its input is normalised.
 
-    ``intensity_scale`` multiplies inputs (spikes per interval) before the
-    network and divides its outputs, so the network works on values of order
-    one at any light level; training sets it from the training data
-    (:func:`recon.train.estimate_intensity_scale`) and stores it in the
-    checkpoint.
+    Presets (:meth:`preset`): ``tiny`` (about 20 k parameters; CPU minutes),
+    ``paper`` (the dataclass defaults: width 32, 4 residual blocks, 2 attention
+    blocks of 4 heads at width 32; about 96 k parameters; wider than tiny but
+    *not* RSIR's layout) and ``rsir`` (the released RSIR network's layout and
+    parameter count, 254,502; see :meth:`rsir`).
+
+    Normalisation (``normalise``):
+
+    * ``"fixed"``: inputs (spikes per interval) are multiplied by
+      ``intensity_scale`` and outputs divided by it; training sets it from the
+      training data (:func:`recon.train.estimate_intensity_scale`). Works only
+      near the training light level.
+    * ``"mean"``: per item, ``s = norm_level / mean(windows)`` (the mean spike
+      rate of the input itself, floored at ``1e-5`` spikes per interval); inputs
+      are multiplied and outputs divided by ``s``, so one model serves every
+      light level (``intensity_scale`` is then unused).
+
+    ``cumulative``: step ``t`` sees the running mean of windows ``0..t``
+    (``t + 1`` windows' worth of spikes) instead of window ``t`` alone, and the
+    fusion mask starts near "take the current step" (its last bias at +2) and
+    the denoiser's output convolution at zero. The untrained network then
+    already outputs (nearly) the TFP over all the windows, and
+    training learns corrections to it (RSIR feeds single windows; see
+    docs/recon.md, deviations).
+
+    ``linearise``: before the network, each window's spike rate ``r`` becomes
+    ``(r - p_dark) / (1 - p_dark) / g`` with the maps' dark-event probability
+    and PRNU gain (unchanged without maps): the expected dark spikes removed
+    and the gain divided out, which for the crossing reset (read-out ~ linear
+    in the light up to ~0.9 spikes per interval) is already close to the
+    target unit, so the network learns denoising rather than sensor physics.
+    The normalisation scale still comes from the raw windows.
     """
 
     n_windows: int = 10
@@ -311,12 +438,53 @@ class RSIRConfig:
     n_maps: int = 2
     intensity_scale: float = 1.0
     nim_loss_weight: float = 1.0
+    nim_depth: int = 2
+    nim_refine: bool = False
+    attn_dim: int = 0
+    learned_wavelet: bool = False
+    normalise: str = "fixed"
+    norm_level: float = 0.5
+    cumulative: bool = False
+    linearise: bool = False
+
+    def __post_init__(self):
+        if self.normalise not in ("fixed", "mean"):
+            raise InputError(f"normalise must be 'fixed' or 'mean', got '{self.normalise}'", field="normalise")
 
     @classmethod
     def tiny(cls, **kw) -> "RSIRConfig":
         base = dict(width=16, res_blocks=2, attn_depth=2, heads=2, attn_window=8, nim_width=16, mask_width=16)
         base.update(kw)
         return cls(**base)
+
+    @classmethod
+    def rsir(cls, **kw) -> "RSIRConfig":
+        """The released RSIR network's layout (``BIT-Vision/RSIR``, ``structure.py``, ``MainDenoise``).
+
+        NIM: per-pixel MLP 2 -> 16 -> 16 -> 16 -> 1 on (window, dark map) plus a
+        1 -> 16 -> 16 -> 16 -> 1 refinement; trainable two-tap wavelet filters
+        (8 parameters); fusion mask CNN 2 -> 16 -> 16 -> 1 (3x3); denoiser:
+        4 residual blocks 4 -> 16 -> 16 -> 16 -> 16, a Swin stage (1x1 patch
+        embedding 16 -> 96 with LayerNorm, 2 blocks of 3 heads in 8 x 8 windows,
+        MLP ratio 4, final LayerNorm, bias-free projection 96 -> 16), 3x3 conv
+        to 4 bands; refine mask CNN 8 -> 16 -> 16 -> 1. 254,502 parameters.
+        """
+        base = dict(width=16, res_blocks=4, attn_depth=2, heads=3, attn_window=8, mlp_ratio=4.0, attn_dim=96,
+                    nim_width=16, nim_depth=3, nim_refine=True, mask_width=16, n_maps=1, learned_wavelet=True)
+        base.update(kw)
+        return cls(**base)
+
+    @classmethod
+    def preset(cls, name: str, **kw) -> "RSIRConfig":
+        """``tiny`` | ``paper`` | ``rsir`` (see the class docstring)."""
+        if name == "tiny":
+            return cls.tiny(**kw)
+        if name == "paper":
+            return cls(**kw)
+        if name == "rsir":
+            return cls.rsir(**kw)
+        from sensor.errors import UnknownMethodError
+        raise UnknownMethodError("network size preset", name, PRESETS)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -328,6 +496,11 @@ class RSIRConfig:
         if unknown:
             raise InputError(f"unknown network settings {unknown}; valid: {sorted(names)}", field="config")
         return cls(**d)
+
+
+def count_parameters(model) -> int:
+    """Number of parameters (every ``nn.Parameter`` element, trainable or not)."""
+    return int(sum(p.numel() for p in model.parameters()))
 
 
 class RSIRNet(nn.Module):
@@ -342,12 +515,20 @@ class RSIRNet(nn.Module):
     def __init__(self, config: RSIRConfig | None = None):
         super().__init__()
         self.config = cfg = config or RSIRConfig()
-        self.nim = NoiseInverse(cfg.n_maps, cfg.nim_width)
-        self.dwt, self.idwt = HaarDWT(), HaarIDWT()
+        self.nim = NoiseInverse(cfg.n_maps, cfg.nim_width, cfg.nim_depth, cfg.nim_refine)
+        if cfg.learned_wavelet:
+            self.dwt, self.idwt = LearnedDWT(), LearnedIDWT()
+        else:
+            self.dwt, self.idwt = HaarDWT(), HaarIDWT()
         self.fusion = TemporalFusion(cfg.mask_width)
+        if cfg.cumulative:
+            nn.init.constant_(self.fusion.mask[-2].bias, 2.0)
         self.denoiser = Denoiser(cfg.width, cfg.res_blocks, cfg.attn_depth, cfg.heads, cfg.attn_window,
-                                 cfg.mlp_ratio)
+                                 cfg.mlp_ratio, cfg.attn_dim)
         self.refine = Refine(cfg.mask_width)
+        if cfg.cumulative:  # start as the identity on the fused bands
+            nn.init.zeros_(self.denoiser.out.weight)
+            nn.init.zeros_(self.denoiser.out.bias)
 
     @property
     def multiple(self) -> int:
@@ -362,30 +543,57 @@ class RSIRNet(nn.Module):
         ph, pw = self.pad_amounts(x.shape[-2], x.shape[-1])
         return F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
 
-    def map_features(self, maps, like):
-        """Network features of the sensor maps: dark spikes per interval (scaled) and PRNU gain - 1."""
+    def input_scale(self, windows) -> "torch.Tensor":
+        """(B, 1, 1, 1) factor from spikes per interval to the network's units (see :class:`RSIRConfig`)."""
+        cfg = self.config
+        if cfg.normalise == "mean":
+            m = windows.detach().mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-5)
+            return cfg.norm_level / m
+        return windows.new_full((windows.shape[0], 1, 1, 1), float(cfg.intensity_scale))
+
+    def map_features(self, maps, like, scale=None):
+        """Network features of the sensor maps: dark spikes per interval (scaled) and PRNU gain - 1.
+
+        ``maps`` (B, >= n_maps, H, W) or None (unknown sensor: zeros); extra channels are ignored.
+        """
         B, _, H, W = like.shape
+        n = self.config.n_maps
         if maps is None:
-            return like.new_zeros(B, self.config.n_maps, H, W)
-        _check_4d(maps, "maps", channels=self.config.n_maps)
+            return like.new_zeros(B, n, H, W)
+        _check_4d(maps, "maps")
+        if maps.shape[1] < n:
+            raise InputError(f"maps need {n} channels (dark probability, PRNU gain); got {maps.shape[1]}",
+                             field="maps")
         if maps.shape[0] != B or maps.shape[-2:] != like.shape[-2:]:
             raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(like.shape)}", field="maps")
-        feats = maps.to(like.dtype).clone()
-        feats[:, 0] = feats[:, 0] * self.config.intensity_scale
-        if self.config.n_maps > 1:
+        feats = maps[:, :n].to(like.dtype).clone()
+        s = self.input_scale(like) if scale is None else scale
+        feats[:, 0:1] = feats[:, 0:1] * s
+        if n > 1:
             feats[:, 1] = feats[:, 1] - 1.0
         return feats
 
     def forward(self, windows, maps=None):
-        cfg = self.config
-        _check_4d(windows, "windows", channels=cfg.n_windows)
+        """``windows`` (B, N, H, W) spikes per interval, any N >= 1 (trained with ``config.n_windows``)."""
+        _check_4d(windows, "windows")
         H, W = windows.shape[-2:]
-        s = cfg.intensity_scale
+        s = self.input_scale(windows)
+        if self.config.linearise and maps is not None:
+            _check_4d(maps, "maps")
+            if maps.shape[0] != windows.shape[0] or maps.shape[-2:] != windows.shape[-2:]:
+                raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(windows.shape)}",
+                                 field="maps")
+            p = maps[:, 0:1].to(windows.dtype)
+            g = maps[:, 1:2].to(windows.dtype).clamp_min(0.05) if maps.shape[1] > 1 else 1.0
+            windows = (windows - p) / (1.0 - p) / g
+        if self.config.cumulative:
+            n = torch.arange(1, windows.shape[1] + 1, device=windows.device, dtype=windows.dtype)
+            windows = windows.cumsum(dim=1) / n.view(1, -1, 1, 1)
         x = self._pad(windows * s)
-        feats = self._pad(self.map_features(maps, windows))
-        out = {"nim": [], "fusion": [], "denoise": [], "refine": [], "denoise_bands": []}
+        feats = self._pad(self.map_features(maps, windows, s))
+        out = {"nim": [], "fusion": [], "denoise": [], "refine": [], "denoise_bands": [], "scale": s}
         prev = None
-        for t in range(cfg.n_windows):
+        for t in range(windows.shape[1]):
             cur_img = self.nim(x[:, t:t + 1], feats)
             cur = self.dwt(cur_img)
             prev = cur if prev is None else prev
@@ -414,7 +622,7 @@ def rsir_loss(model: RSIRNet, out: dict, target):
     each a mean over pixels. Returns (loss, dict of the mean components).
     """
     _check_4d(target, "target", channels=1)
-    s = model.config.intensity_scale
+    s = out["scale"]
     y = target * s
     yb = model.dwt(model._pad(y))
     n = len(out["refine"])

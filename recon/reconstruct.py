@@ -14,40 +14,91 @@ from .imageio import to_display, white_level, write_exr, write_npy, write_png
 UNITS = "ideal spikes per interval (rate_e / threshold_e)"
 
 
-def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_dir, window: int = 320,
-                     center: int | None = None, every: int | None = None, profile=None, height: int = 250,
-                     width: int = 400, drop_columns: int = 0, formats: str = "png,exr,npy",
-                     device: str = "auto") -> list[Path]:
-    """Reconstruct one instant (``center``, default the middle) or every ``every`` intervals; write the images.
+#: the network shipped with the package (``--checkpoint`` default of ``--method rsir``); see recon/pretrained/
+PRETRAINED = Path(__file__).with_name("pretrained") / "rsir-tiny-allight.pt"
+METHODS = ("tfp", "tfi", "tfp-dt", "tfp-dt-denoised", "rsir")
 
-    Returns the written paths. Images are float32 (H, W) in :data:`UNITS`.
+
+def default_checkpoint() -> Path:
+    """The shipped pretrained checkpoint (an error naming it when the package was installed without it)."""
+    if not PRETRAINED.is_file():
+        raise InputError("the pretrained network is not installed with this package; pass --checkpoint CKPT",
+                         path=PRETRAINED)
+    return PRETRAINED
+
+
+def read_recording(path, *, layout: str | None = None, height: int | None = None, width: int | None = None,
+                   drop_columns: int = 0):
+    """Any spike file ``sensor`` reads (container, .dat, Spike-Zoo/UHSR, SpikingSIM, RSIR .npz, HDF5).
+
+    Returns (bool (T, H, W), meta dict). One reader for the project: ``sensor.spikefile``.
     """
     from sensor.spikefile import read_spikes_with_meta
+    return read_spikes_with_meta(path, layout=layout, height=height, width=width, drop_columns=drop_columns)
+
+
+def fit_windows(T: int, n_windows: int | None, window: int | None, trained: tuple[int, int]) -> tuple[int, int]:
+    """Windows (N, L) for a recording of ``T`` intervals: given values, else the trained ones shortened to fit.
+
+    Unset ``window``: the trained L, or ``T // N`` when N * L would exceed T. Unset ``n_windows``: the
+    trained N (fewer when even L = 1 does not fit). Raises when N * L > T.
+    """
+    N = int(n_windows) if n_windows else trained[0]
+    if not n_windows and T < N:
+        N = T
+    L = int(window) if window else min(trained[1], T // max(N, 1))
+    if N < 1 or L < 1:
+        raise InputError(f"windows and window length must be >= 1 (got {N} x {L})", field="--windows")
+    if N * L > T:
+        raise InputError(f"{N} windows of {L} intervals need {N * L} intervals; the recording has {T} "
+                         f"(choose --windows N --window-length L with N*L <= {T})", field="--windows")
+    return N, L
+
+
+def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_dir, window: int | None = None,
+                     center: int | None = None, every: int | None = None, profile=None, height: int | None = None,
+                     width: int | None = None, drop_columns: int = 0, formats: str = "png,exr,npy",
+                     device: str = "auto", layout: str | None = None, n_windows: int | None = None,
+                     window_length: int | None = None, sigma: float | None = None) -> list[Path]:
+    """Reconstruct one instant (``center``, default the middle) or every ``every`` intervals; write the images.
+
+    ``window``: the TFP / tfp-dt window [intervals] (default min(320, T)). ``n_windows`` x
+    ``window_length``: the network input (default the checkpoint's, shortened to fit a short recording).
+    ``sigma``: fixed width of ``tfp-dt-denoised`` (default: from the tuned table). Returns the written
+    paths. Images are float32 (H, W) in :data:`UNITS`.
+    """
     from sensor.fileio import provenance
     fmts = {f.strip().lower() for f in formats.split(",") if f.strip()}
     bad = fmts - {"png", "exr", "npy"}
     if bad or not fmts:
         raise InputError(f"formats must be a subset of png, exr, npy; got '{formats}'", field="--formats")
-    spikes, meta = read_spikes_with_meta(spikes_path, height=height, width=width, drop_columns=drop_columns)
+    if method not in METHODS:
+        from sensor.errors import UnknownMethodError
+        raise UnknownMethodError("reconstruction method", method, METHODS)
+    spikes, meta = read_recording(spikes_path, layout=layout, height=height, width=width, drop_columns=drop_columns)
     T, H, W = spikes.shape
     prof = None
     if profile:
         from .datasets import resolve_profile
         prof = resolve_profile(profile, H, W)
     model = None
-    M = RSIR_N_WINDOWS * RSIR_WINDOW
     if method == "rsir":
-        if not checkpoint:
-            raise InputError("--method rsir needs --checkpoint CKPT", field="--checkpoint")
         from .nets import load_checkpoint
+        checkpoint = checkpoint or default_checkpoint()
         model, _ = load_checkpoint(checkpoint, device)
-        M = model.config.n_windows * model.config.window
-    elif method == "tfp-dt" and prof is None:
-        from .datasets import resolve_profile
-        prof = resolve_profile(None, H, W)
-    need = M if method == "rsir" else (window if method in ("tfp", "tfp-dt") else 1)
+        N, Lw = fit_windows(T, n_windows, window_length, (model.config.n_windows, model.config.window))
+        need = N * Lw
+    elif method in ("tfp", "tfp-dt", "tfp-dt-denoised"):
+        window = int(window) if window else min(RSIR_N_WINDOWS * RSIR_WINDOW, T)
+        need = window
+        if method != "tfp" and prof is None:
+            from .datasets import uniform_profile
+            prof = uniform_profile(H, W)
+    else:
+        need = 1
     if T < need:
-        raise InputError(f"the stream has {T} intervals; {method} needs {need}", path=spikes_path)
+        raise InputError(f"the stream has {T} intervals; {method} needs {need} (use a shorter --window)",
+                         path=spikes_path)
     if every:
         centers = list(range(need // 2, T - (need - need // 2) + 1, int(every)))
     else:
@@ -65,23 +116,22 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
             img = tfi(spikes, c)
         elif method == "tfp-dt":
             img = tfp_deadtime(spikes, prof, window, c) / np.float32(prof.threshold_e)
-        elif method == "rsir":
-            import torch
-            cfg = model.config
-            w = tfp_windows(spikes, cfg.n_windows, cfg.window, center=c)
-            dev = next(model.parameters()).device
-            maps = None
-            if prof is not None:
-                from .datasets import sensor_maps
-                maps = torch.from_numpy(sensor_maps(prof)[None]).to(dev)
-            img = model.reconstruct(torch.from_numpy(w[None]).to(dev), maps)[0, 0].cpu().numpy()
+        elif method == "tfp-dt-denoised":
+            from .baselines import tfp_dt_denoised
+            img = tfp_dt_denoised(spikes, prof, window, c, sigma=sigma) / np.float32(prof.threshold_e)
         else:
-            from sensor.errors import UnknownMethodError
-            raise UnknownMethodError("reconstruction method", method, ("tfp", "tfi", "tfp-dt", "rsir"))
+            import torch
+            w = tfp_windows(spikes, N, Lw, center=c)
+            dev = next(model.parameters()).device
+            from .datasets import sensor_maps, uniform_profile
+            maps = torch.from_numpy(sensor_maps(prof if prof is not None else uniform_profile(H, W))[None]).to(dev)
+            img = model.reconstruct(torch.from_numpy(w[None]).to(dev), maps)[0, 0].cpu().numpy()
         img = np.asarray(img, np.float32)
         name = f"{stem}_{method}_{c:07d}"
         attrs = {"units": UNITS, "method": method, "center_interval": str(c), "source": str(spikes_path),
                  "made_by": provenance(checkpoint=str(checkpoint) if checkpoint else None)}
+        if method == "rsir":
+            attrs["windows"] = f"{N}x{Lw}"
         if "png" in fmts:
             written.append(write_png(out_dir / f"{name}.png", to_display(img, white_level(img))))
         if "exr" in fmts:

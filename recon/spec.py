@@ -4,7 +4,7 @@
 
     KIND:PATH[,PATH...][:KEY=VALUE[:KEY=VALUE...]]
 
-``KIND`` is ``davis``, ``sdmd`` or ``rendered``. After the first colon, the
+``KIND`` is ``davis``, ``sdmd``, ``rendered`` or ``pairs``. After the first colon, the
 colon-separated tokens that look like ``key=value`` (key a known option) are
 options; the rest, rejoined with ``:``, is the comma-separated path list
 (``rendered`` takes several frames folders; ``davis`` and ``sdmd`` one root).
@@ -13,6 +13,8 @@ Examples::
 
     davis:/data/DAVIS:split=train:crop=64x64:lux=5-50
     davis:/data/DAVIS:split=test:res=250x400
+    pairs:/data/spikezoo_test:height=250:width=400
+    pairs:/data/uhsr_pairs:windows=10:window=20
     sdmd:/data/SDMD:split=test:profile=my-vidar.npz
     rendered:runs/scene1/frames,runs/scene2/frames:crop=128x128:model=isi
 
@@ -26,6 +28,9 @@ Options (all kinds)
 ``warmup``      simulated intervals dropped before each item (default 64)
 ``max_items``   use at most this many items
 ``crop``        HxW patch per item (davis: random offset in training; rendered: centre)
+``start``       phase (default: random spike phases after the warm-up, as in a running camera) | zero
+``windows``     TFP windows per network input (default 10)
+``window``      intervals per TFP window (default 32); windows * window <= the recording
 
 ``davis`` only: ``res`` (HxW sensor resolution, default the profile's or
 250x400), ``lux`` (scene illuminance: a value or LO-HI, log-uniform per
@@ -35,12 +40,19 @@ training item, geometric mean for test items; default 5-50), ``ipf``
 ``split_file`` (default the shipped DAVIS-2017 85/5 split).
 
 ``rendered`` only: ``stride`` (intervals between items), ``spikes`` (stored
-spike file inside each folder). A path may also be a ``render2spike dataset``
-folder (``manifest.json``): its finished samples' frames folders, in order.
+spike file inside each folder), ``lux`` (rescale the rendered light to this
+reference illuminance: a value or LO-HI, log-uniform per training item;
+``split=train`` also draws a random crop offset per item). A path may also be
+a ``render2spike dataset`` folder (``manifest.json``): its finished samples'
+frames folders, in order.
 
 ``sdmd`` only: ``height``, ``width``, ``drop_columns`` (.dat layout; defaults
 250, 400, 0; per-scene meta.json overrides), ``split_file`` (default
-ROOT/split.json).
+ROOT/split.json), ``layout`` (spike-file layout, default detected).
+
+``pairs`` (Spike-Zoo style: ``ROOT/spike/NAME.dat|.npz`` + ``ROOT/gt/NAME.png``,
+or side by side): ``height``, ``width``, ``drop_columns``, ``layout``,
+``split_file`` (default: every pair is an item).
 """
 
 from __future__ import annotations
@@ -49,14 +61,15 @@ from dataclasses import dataclass, field
 
 from sensor.errors import InputError, UnknownMethodError
 
-KINDS = ("davis", "sdmd", "rendered")
+KINDS = ("davis", "sdmd", "rendered", "pairs")
 COMMON = {"split": str, "profile": str, "model": str, "seed": int, "intervals": int, "warmup": int,
-          "max_items": int, "crop": "hw"}
+          "max_items": int, "crop": "hw", "windows": int, "window": int, "start": str}
 PER_KIND = {
     "davis": {"res": "hw", "lux": "range", "ipf": int, "frame_stride": int, "f_number": float,
               "transmission": float, "kelvin": float, "split_file": str},
-    "rendered": {"stride": int, "spikes": str},
-    "sdmd": {"height": int, "width": int, "drop_columns": int, "split_file": str},
+    "rendered": {"stride": int, "spikes": str, "lux": "range"},
+    "sdmd": {"height": int, "width": int, "drop_columns": int, "split_file": str, "layout": str},
+    "pairs": {"height": int, "width": int, "drop_columns": int, "split_file": str, "layout": str},
 }
 
 
@@ -122,13 +135,68 @@ def build_dataset(spec: DataSpec | str, *, split: str | None = None, model: str 
         spec = parse_data_spec(spec)
     o = dict(spec.options)
     common = dict(model=o.pop("model", model or "elssim"), seed=o.pop("seed", 0 if seed is None else seed),
+                  n_windows=o.pop("windows", 10), window=o.pop("window", 32), start=o.pop("start", "phase"),
                   intervals=o.pop("intervals", None), warmup=o.pop("warmup", 64),
                   max_items=o.pop("max_items", None), include_spikes=include_spikes, implementation=implementation)
     split = o.pop("split", split or "test")
     if spec.kind == "davis":
         return D.DavisDataset(spec.paths[0], split, **o, **common)
-    if spec.kind == "sdmd":
+    if spec.kind in ("sdmd", "pairs"):
         if "crop" in o:
-            raise InputError("crop is not supported for sdmd data (scenes are used whole)", field="--data")
-        return D.SDMDDataset(spec.paths[0], split, **o, **common)
-    return D.RenderedDataset(spec.paths, **o, **common)
+            raise InputError(f"crop is not supported for {spec.kind} data (scenes are used whole)", field="--data")
+        cls = D.SDMDDataset if spec.kind == "sdmd" else D.PairsDataset
+        return cls(spec.paths[0], split, **o, **common)
+    return D.RenderedDataset(spec.paths, split=split, **o, **common)
+
+
+class ConcatData:
+    """Several datasets as one (``render2spike train --data A --data B``): items of A, then of B.
+
+    ``set_epoch`` reaches every part; all parts must give the same number of
+    windows (and, for batching, the same crop).
+    """
+
+    def __init__(self, parts):
+        self.parts = list(parts)
+        nw = {p.n_windows for p in self.parts}
+        if len(nw) != 1:
+            raise InputError(f"the data specs give different numbers of windows {sorted(nw)}", field="--data")
+        self.n_windows = nw.pop()
+        self.window = self.parts[0].window
+        self.model = "+".join(sorted({p.model for p in self.parts}))
+        self.kind = "+".join(p.kind for p in self.parts)
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+        for p in self.parts:
+            p.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self.parts)
+
+    def _locate(self, i: int):
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        for p in self.parts:
+            if i < len(p):
+                return p, i
+            i -= len(p)
+        raise IndexError(i)  # pragma: no cover
+
+    def sample(self, i: int):
+        p, j = self._locate(i)
+        return p.sample(j)
+
+    def __getitem__(self, i: int) -> dict:
+        p, j = self._locate(i)
+        return p[j]
+
+
+def build_datasets(specs, **kw):
+    """One dataset per spec (see :func:`build_dataset`); several are joined with :class:`ConcatData`."""
+    specs = [specs] if isinstance(specs, (str, DataSpec)) else list(specs)
+    if not specs:
+        raise InputError("no data spec given", field="--data")
+    parts = [build_dataset(sp, **kw) for sp in specs]
+    return parts[0] if len(parts) == 1 else ConcatData(parts)

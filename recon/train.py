@@ -59,6 +59,10 @@ class TrainConfig:
 def collate(items: list[dict]):
     """List of training dicts -> dict of float32 tensors (B, ...)."""
     import torch
+    shapes = {tuple(it["windows"].shape) for it in items}
+    if len(shapes) > 1:
+        raise InputError(f"items of one batch differ in shape {sorted(shapes)}: give every --data the same "
+                         "crop=HxW", field="--data")
     return {k: torch.from_numpy(np.stack([it[k] for it in items]).astype(np.float32)) for k in items[0]}
 
 
@@ -89,7 +93,11 @@ def read_loss_csv(path) -> list[dict]:
     if not path.is_file():
         return []
     with path.open(newline="") as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        try:
+            return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        except (TypeError, ValueError, csv.Error) as exc:
+            raise InputError(f"the loss log is corrupt ({exc}); delete it to resume without the earlier curve",
+                             path=path) from exc
 
 
 def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
@@ -137,7 +145,10 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
     resume : bool
         Continue from ``out_dir/checkpoints/last.pt``.
     init_checkpoint : path, optional
-        Start from these weights (fine-tuning, e.g. on SDMD training pairs).
+        Start from these weights (fine-tuning, e.g. on SDMD training pairs); the
+        network layout is the checkpoint's. A ``fixed``-normalised network
+        adopts the intensity scale of the new data (``estimate_intensity_scale``);
+        a ``mean``-normalised one needs none.
     run_info : dict
         Stored in config.json (data spec, noise model, command).
     """
@@ -177,9 +188,11 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                              "another --out", path=out_dir)
         if init_checkpoint:
             model, _ = load_checkpoint(init_checkpoint, device)
+            if model.config.normalise == "fixed":  # adopt the new data's light level (the weights stay)
+                model.config.intensity_scale = estimate_intensity_scale(dataset)
         else:
             nc = net_config or RSIRConfig.tiny()
-            if nc.intensity_scale == 1.0:
+            if nc.normalise == "fixed" and nc.intensity_scale == 1.0:
                 nc.intensity_scale = estimate_intensity_scale(dataset)
             with torch.random.fork_rng(devices=[]):  # seeded weight init without touching the global generator
                 torch.manual_seed(int(cfg.seed))
@@ -191,7 +204,11 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                          f"{model.config.n_windows}", field="--data")
     opt = torch.optim.Adam(model.parameters(), lr=lr_at(step, cfg))
     if ckpt is not None and "optimizer" in ckpt:
-        opt.load_state_dict(ckpt["optimizer"])
+        try:
+            opt.load_state_dict(ckpt["optimizer"])
+        except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+            raise InputError(f"the optimizer state does not fit the network ({exc})", path=last,
+                             field="optimizer") from exc
 
     info = {"format": "render2spike-train-run", "version": 1, "network": model.config.to_dict(),
             "train": asdict(cfg), "device": str(device), "provenance": provenance()}

@@ -25,7 +25,8 @@ def register(subparsers) -> None:
     p.add_argument("--data", required=True,
                    help="data spec KIND:PATH[,PATH...][:key=value...] (split=test by default; see docs/recon.md)")
     p.add_argument("--methods", default="tfp,tfi",
-                   help="comma-separated: tfp, tfp:N, tfi, tfp-dt, rsir:CKPT[=LABEL]")
+                   help="comma-separated: tfp, tfp:N, tfi, tfp-dt, tfp-dt-denoised (the strong classic baseline: "
+                        "width tuned per light level on training data), tfp-dt-denoised:SIGMA, rsir:CKPT[=LABEL]")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],
                    help="spike model for simulated test data (a model= spec option wins)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (table.md, table.csv, grid.png, ...)")

@@ -4,18 +4,35 @@ from __future__ import annotations
 
 from pathlib import Path
 
+EXAMPLES = """presets (--size):
+  tiny   width 16, 2 residual blocks, 2 attention blocks (2 heads) at width 16: 20,587 parameters;
+         trains on a CPU in minutes (the default)
+  paper  width 32, 4 residual blocks, 2 attention blocks (4 heads) at width 32: 96,047 parameters;
+         wider than tiny, NOT the released RSIR layout
+  rsir   the released RSIR network (BIT-Vision/RSIR MainDenoise): 16-channel residual blocks, a 96-wide
+         windowed-attention stage (3 heads, MLP ratio 4), trainable wavelet taps: 254,502 parameters
+         (remaining deviations in docs/recon.md)
+
+normalisation (--normalise):
+  mean   divide input and output by the mean spike rate of the input itself: one model for every light
+         level (default)
+  fixed  one intensity scale estimated from the training data (the network works near that level only)
+
+examples:
+  python -m recon.synth data/dvsynth --sequences 90 --frames 12 --size 96x128 --seed 7
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --out runs/a --steps 2000
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 \\
+      --data rendered:out/disk,out/room:crop=64x64:lux=0.5-500 --size rsir --out runs/b
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --out runs/a --steps 3000 --resume
+  render2spike train --data sdmd:data/SDMD:split=train --init runs/a/model.pt --out runs/ft
+"""
+
 HELP_DATA = ("data spec KIND:PATH[,PATH...][:key=value...], KIND davis | sdmd | rendered; e.g. "
              "davis:/data/DAVIS:crop=64x64:lux=5-50 (see docs/recon.md)")
 
 
-EXAMPLES = """\
-examples:
-  python -m recon.synth data/dvsynth --sequences 90 --frames 12 --size 96x128 --seed 7
-  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128 --noise-model elssim \\
-      --out runs/dvsynth --steps 1500 --max-minutes 18
-  render2spike train --data davis:data/dvsynth:crop=64x64 --out runs/dvsynth --steps 3000 --resume
-  render2spike train --data rendered:out/demo/frames --out runs/ft --init runs/dvsynth/model.pt --steps 200
-"""
+#: the presets of recon.nets.RSIRConfig.preset (kept here so --help does not import torch; a test checks them)
+PRESETS = ("tiny", "paper", "rsir")
 
 
 def register(subparsers) -> None:
@@ -26,7 +43,8 @@ def register(subparsers) -> None:
                     "(or on SDMD-style real pairs). Input: 10 TFP windows of 32 intervals (M = 320); target: the "
                     "clean intensity at the window centre in ideal spikes per interval (rate_e / threshold_e).",
         epilog=EXAMPLES, formatter_class=HelpFormatter)
-    p.add_argument("--data", required=True, help=HELP_DATA)
+    p.add_argument("--data", required=True, action="append",
+                   help=HELP_DATA + "; repeat to train on several sources at once (same crop)")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],
                    help="spike model the training spikes are simulated with (a model= spec option wins)")
     p.add_argument("--out", required=True, metavar="RUN_DIR", help="run directory (checkpoints, loss curve)")
@@ -34,11 +52,19 @@ def register(subparsers) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="start a new run in RUN_DIR, deleting its checkpoints, loss curve and model")
     p.add_argument("--init", metavar="CKPT", help="start from these weights (fine-tuning)")
-    p.add_argument("--steps", type=int, default=2000, help="optimiser steps in total")
-    p.add_argument("--batch-size", type=int, default=4, help="items per optimiser step")
-    p.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (cosine decay to 10%%)")
-    p.add_argument("--size", default="tiny", choices=["tiny", "paper"],
-                   help="network size preset: tiny (CPU minutes) or paper (RSIR-like widths)")
+    p.add_argument("--steps", type=int, default=2000, help="optimiser steps in total (default 2000)")
+    p.add_argument("--batch-size", type=int, default=4, help="items per step (default 4)")
+    p.add_argument("--lr", type=float, default=1e-3, help="initial learning rate (cosine decay to 10%%; 1e-3)")
+    p.add_argument("--size", choices=list(PRESETS),
+                   help="network preset (default tiny): see 'presets' below; not with --init")
+    p.add_argument("--cumulative", action="store_true",
+                   help="feed step t the running mean of windows 0..t (the untrained network outputs the full TFP; "
+                        "see docs/recon.md); not with --init")
+    p.add_argument("--linearise", action="store_true",
+                   help="remove the expected dark spikes and divide by the PRNU gain before the network (see "
+                        "docs/recon.md); not with --init")
+    p.add_argument("--normalise", choices=["mean", "fixed"],
+                   help="input/output normalisation (default mean; see below); not with --init")
     p.add_argument("--width", type=int, help="channels of the denoiser (overrides the preset)")
     p.add_argument("--res-blocks", type=int, help="residual blocks in the denoiser")
     p.add_argument("--attn-depth", type=int, help="windowed self-attention blocks")
@@ -56,6 +82,9 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+SIZE_FLAGS = ("width", "res_blocks", "attn_depth", "heads", "attn_window")
+
+
 def clear_run(out: Path) -> None:
     """Remove what `train` wrote into ``out`` (checkpoints, loss curve, model, config), nothing else."""
     for p in sorted((out / "checkpoints").glob("*.pt")) if (out / "checkpoints").is_dir() else []:
@@ -68,10 +97,10 @@ def run(args) -> int:
     import sys
 
     from recon.nets import RSIRConfig
-    from recon.spec import build_dataset, parse_data_spec
+    from recon.spec import build_datasets
     from recon.train import TrainConfig, train
-
     from sensor.errors import InputError
+
     if args.overwrite and args.resume:
         raise InputError("--overwrite starts a new run and --resume continues one: give one of them",
                          field="--overwrite")
@@ -79,12 +108,19 @@ def run(args) -> int:
             Path(args.init).resolve().is_relative_to(Path(args.out).resolve()) and args.overwrite:
         raise InputError("--init lies inside the run directory that --overwrite would empty; copy it elsewhere "
                          "first", path=args.init, field="--init")
-    spec = parse_data_spec(args.data)
+    given = [f"--{n.replace('_', '-')}" for n in SIZE_FLAGS + ("size", "normalise") if getattr(args, n) is not None]
+    given += [f for f, on in (("--cumulative", args.cumulative), ("--linearise", args.linearise)) if on]
+    if args.init and given:
+        raise InputError(f"--init takes the network layout from the checkpoint; drop {', '.join(given)}",
+                         field="--init")
+    if args.resume and given:
+        raise InputError(f"--resume continues the stored network; drop {', '.join(given)}", field="--resume")
+    ds = build_datasets(args.data, split="train", model=args.noise_model, seed=args.seed)
     if args.overwrite:
         clear_run(Path(args.out))
-    ds = build_dataset(spec, split="train", model=args.noise_model, seed=args.seed)
-    net = RSIRConfig.tiny() if args.size == "tiny" else RSIRConfig()
-    for name in ("width", "res_blocks", "attn_depth", "heads", "attn_window"):
+    net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
+                             linearise=args.linearise)
+    for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:
             setattr(net, name, v)
@@ -92,7 +128,8 @@ def run(args) -> int:
                       checkpoint_every=args.checkpoint_every, seed=args.seed, workers=args.workers,
                       max_minutes=args.max_minutes, device=args.device,
                       threads=args.threads)
-    info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv)}
+    info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv),
+            "size": args.size or "tiny"}
     summary = train(ds, args.out, net_config=net, train_config=cfg, resume=args.resume, init_checkpoint=args.init,
                     run_info=info, progress=not args.quiet)
     print(f"trained {summary['steps_done']} steps in {summary['elapsed_s'] / 60:.1f} min on {summary['device']}; "

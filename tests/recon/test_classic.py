@@ -107,3 +107,24 @@ def test_tfp_deadtime_shape_check():
     prof = SensorProfile.synthetic(4, 4, threshold_e=10.0)
     with pytest.raises(InputError, match="profile"):
         tfp_deadtime(np.zeros((10, 4, 5), bool), prof)
+
+
+def test_tfp_deadtime_unbiased_for_the_crossing_reset(z):
+    """Constant light on a crossing-reset sensor (the vidar-default reset) with PRNU and dark events.
+
+    The inversion uses ``sensor.theory.crossing_rates`` (tabulated in lam / k at the median k and interpolated
+    between dark rates). Statistics as in the interval-reset test above: SE from the spread of the per-pixel
+    estimates, plus 2 lam / count for the start-up and Jensen terms. Plain TFP * theta misses by far more
+    (dark spikes, refractory loss).
+    """
+    lam_true, theta = 400.0, 2000.0
+    prof = SensorProfile.synthetic(32, 32, threshold_e=theta, prnu_sigma=0.05, dark_rate=0.01, dark_rate_spread=0.3,
+                                   reset="crossing", seed=1)
+    s = simulate(np.full((4200, 32, 32), lam_true, np.float32), prof, "elssim", seed=3)[200:]
+    est = tfp_deadtime(s, prof).astype(np.float64)
+    count = s.sum(axis=0).mean()
+    se = est.std(ddof=1) / np.sqrt(est.size)
+    tol = z * se + 2.0 * lam_true / count
+    assert abs(est.mean() - lam_true) < tol, (est.mean(), tol)
+    naive = (tfp(s) * theta).mean()
+    assert abs(naive - lam_true) > 3 * tol

@@ -5,8 +5,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from recon.nets import (HaarDWT, HaarIDWT, RSIRConfig, RSIRNet, WindowAttention, haar_dwt, haar_idwt,  # noqa: E402
-                        load_checkpoint, rsir_loss, save_checkpoint, window_partition, window_reverse)
+from recon.nets import (PRESETS, HaarDWT, HaarIDWT, LearnedDWT, LearnedIDWT, RSIRConfig, RSIRNet,  # noqa: E402
+                        WindowAttention, count_parameters, haar_dwt, haar_idwt, load_checkpoint, rsir_loss,
+                        save_checkpoint, wavelet_dwt, wavelet_idwt, window_partition, window_reverse)
 from sensor import InputError  # noqa: E402
 
 pytestmark = pytest.mark.torch
@@ -72,8 +73,8 @@ def test_network_output_shapes_cpu():
     for key in ("nim", "fusion", "denoise", "refine"):
         assert len(out[key]) == 10 and out[key][0].shape == (2, 1, 13, 18)
     assert net.reconstruct(windows, None).shape == (2, 1, 13, 18)
-    with pytest.raises(InputError, match="10 channels"):
-        net(torch.rand(2, 9, 16, 16))
+    # any number of windows runs (the recurrence just takes more or fewer steps)
+    assert net.reconstruct(torch.rand(2, 7, 16, 16, generator=_gen(5)) * 0.1).shape == (2, 1, 16, 16)
     with pytest.raises(InputError, match="maps"):
         net(windows, maps[:, :, :5])
 
@@ -116,3 +117,68 @@ def test_checkpoint_errors(tmp_path):
     (tmp_path / "junk.pt").write_text("not a checkpoint")
     with pytest.raises(InputError, match="readable"):
         load_checkpoint(tmp_path / "junk.pt")
+
+
+def test_rsir_preset_has_the_released_parameter_count():
+    # BIT-Vision/RSIR structure.py MainDenoise: NIM 609 + FPN refine 593 + wavelet taps 8 + fusion 2769
+    # + residual blocks 17728 + Swin stage 228582 + output conv 580 + refine 3633 = 254,502
+    net = RSIRNet(RSIRConfig.rsir())
+    assert count_parameters(net) == 254_502
+    assert count_parameters(net.nim.net) == 609 and count_parameters(net.nim.refine) == 593
+    assert count_parameters(net.dwt) + count_parameters(net.idwt) == 8
+    assert count_parameters(net.fusion) == 2769 and count_parameters(net.refine) == 3633
+    assert count_parameters(net.denoiser.res) == 17728
+    # the presets differ and each builds
+    assert {p: count_parameters(RSIRNet(RSIRConfig.preset(p))) for p in PRESETS}["tiny"] < 30_000
+
+
+def test_learned_wavelet_function_and_module_agree_and_start_as_haar():
+    x = torch.rand(2, 3, 6, 8, generator=_gen(6))
+    dwt, idwt = LearnedDWT(), LearnedIDWT()
+    torch.testing.assert_close(dwt(x), wavelet_dwt(x, dwt.lo, dwt.hi))
+    torch.testing.assert_close(dwt(x), haar_dwt(x))
+    y = haar_dwt(x)
+    torch.testing.assert_close(idwt(y), wavelet_idwt(y, idwt.glo, idwt.ghi))
+    torch.testing.assert_close(idwt(y), haar_idwt(y))
+    # other taps: still the function the module computes, and a different transform
+    with torch.no_grad():
+        dwt.lo.mul_(1.1)
+    torch.testing.assert_close(dwt(x), wavelet_dwt(x, dwt.lo, dwt.hi))
+    assert not torch.allclose(dwt(x), haar_dwt(x))
+
+
+def test_mean_normalisation_makes_the_network_light_level_equivariant():
+    """With normalise='mean' the output scales exactly with the input (and the dark map) at any light level."""
+    cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8, mask_width=8,
+                          normalise="mean")
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(1)
+        net = RSIRNet(cfg).eval()
+        for p in net.parameters():  # non-trivial weights (zero-initialised layers would hide errors)
+            p.data.add_(0.05 * torch.randn_like(p))
+    w = torch.rand(1, 4, 16, 16, generator=_gen(7)) * 0.01
+    maps = torch.stack([torch.full((1, 16, 16), 0.001), torch.ones(1, 16, 16)], dim=1)
+    a = net.reconstruct(w, maps)
+    b = net.reconstruct(w * 100, torch.stack([maps[:, 0] * 100, maps[:, 1]], dim=1))
+    torch.testing.assert_close(b, a * 100, rtol=1e-4, atol=1e-6)
+    fixed = RSIRNet(RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8,
+                                    mask_width=8, intensity_scale=10.0))
+    assert torch.all(fixed.input_scale(w) == 10.0)
+    with pytest.raises(InputError, match="normalise"):
+        RSIRConfig(normalise="median")
+
+
+def test_cumulative_network_starts_as_the_full_window_tfp():
+    """cumulative=True: step t sees the mean of windows 0..t; the untrained net returns ~ the mean of all windows."""
+    cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8, mask_width=8,
+                          normalise="mean", cumulative=True)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(2)
+        net = RSIRNet(cfg).eval()
+    w = torch.rand(2, 10, 16, 16, generator=_gen(8)) * 0.1
+    out = net.reconstruct(w)
+    full = w.mean(dim=1, keepdim=True)
+    last = w[:, -1:]
+    # the fusion mask starts at sigmoid(2) = 0.88 on the current (cumulative) step: close to the full mean,
+    # far closer than to the last window alone
+    assert (out - full).abs().mean() < 0.1 * (out - last).abs().mean()
