@@ -607,18 +607,19 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     per interval) cut ISIs short and raise the CV; the threshold sets how many
     photoelectrons make a spike (CV ~ 1/sqrt(k) from photon noise).
 
-    Method: ``n_pixels`` stationary, non-hot real pixels with >= 3 spikes are drawn
-    at random (seeded; the draws are disjoint while the candidates last); at each grid point the pixels' light is the exact
-    inversion of their rate for that profile (:func:`sensor.vidar.light_for_rate`),
-    elssim simulates them (same T, a warm-up dropped, one fixed seed for every grid
-    point: common random numbers) and the objective is the distance D
-    (:func:`_distance`) restricted to :data:`FIT_STATISTICS`. Search over
-    the full grid of both (they trade off: more dark events and a higher threshold
-    can give a similar CV), the grid minimum refined along each axis by a
-    parabola through its neighbours. This is repeated for
-    ``n_seeds`` independent pixel draws and simulation seeds; the estimate is
-    the mean over seeds and its uncertainty their standard deviation (the spread
-    of the estimator, which includes the choice of pixels).
+    Method: ``n_pixels`` stationary, non-hot real pixels with >= 3 spikes are
+    drawn at random (seeded; the draws are disjoint while the candidates last).
+    At each grid point the pixels' light is the exact inversion of their rate
+    for that profile (:func:`sensor.vidar.light_for_rate`), elssim simulates
+    them (same T, a warm-up dropped, one fixed seed for every grid point: common
+    random numbers) and the objective is the distance D (:func:`_distance`)
+    restricted to :data:`FIT_STATISTICS`. The whole grid of both scales is
+    searched (they trade off: more dark events and a higher threshold can give
+    a similar CV); the grid minimum is refined along each axis by a parabola
+    through its neighbours. This is repeated for ``n_seeds`` independent pixel
+    draws and simulation seeds; the estimate is the mean over draws and its
+    uncertainty their standard deviation (the spread of one draw's estimate,
+    which includes the choice of pixels).
 
     Returns a :class:`FitResult` whose ``profile`` is ``profile`` scaled
     (:func:`scaled_profile`) by the mean scales.
@@ -698,7 +699,8 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
                         f"on {min(n_pixels, cand.size)} random stationary pixels, refined by a parabola; mean "
                         f"over {n_seeds} pixel draws / simulation seeds, uncertainty = their standard deviation "
                         "(threshold: geometric mean, sd of the log times the mean)"),
-             "reset": _reset_of(profile), "candidate_pixels": int(cand.size), "disjoint_draws": bool(disjoint), "seconds": time.perf_counter() - t0,
+             "reset": _reset_of(profile), "candidate_pixels": int(cand.size), "disjoint_draws": bool(disjoint),
+             "seconds": time.perf_counter() - t0,
              "base_threshold_e": float(profile.threshold_e)}
     return FitResult(fitted, d_mean, d_sd, t_mean, t_sd, per_seed, notes)
 
@@ -843,4 +845,5 @@ def write_report(result: RealismResult, out_dir, recording: str = "") -> dict:
 
 
 __all__ = ["realism", "spike_statistics", "stationary_pixels", "estimate_light", "rate_light_curve",
-           "parse_models", "write_report", "fit_profile", "scaled_profile", "FitResult", "RealismResult", "ModelSpec", "DEFAULT_MODELS", "DISTANCE_MEANING"]
+           "parse_models", "write_report", "fit_profile", "scaled_profile", "FitResult", "RealismResult", "ModelSpec",
+           "DEFAULT_MODELS", "DISTANCE_MEANING", "FIT_STATISTICS"]
