@@ -705,6 +705,31 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     return FitResult(fitted, d_mean, d_sd, t_mean, t_sd, per_seed, notes)
 
 
+def add_fitted_models(result: RealismResult, spikes, profile: SensorProfile, fit: FitResult, models, *,
+                      seed: int = 0, segments: int = 4, alpha: float = 0.01, progress=None, **kw) -> dict:
+    """Simulate the ``elssim`` models of ``models`` again with ``fit``'s scales; add them to ``result``.
+
+    ``profile`` is the one ``result`` was made with (same H x W as ``spikes``).
+    Rows and distances are added as ``"LABEL (fitted)"``; ``result.notes["fit"]``
+    gets the fit's summary and the distance D of each elssim model before and
+    after, which is also returned ({"before_D": {...}, "after_D": {...}}).
+    """
+    specs = parse_models(",".join(m.label if isinstance(m, ModelSpec) else m for m in models))
+    elssim = [s for s in specs if s.name == "elssim"]
+    fitted = scaled_profile(profile, fit.dark_scale, fit.threshold_scale, name=f"{profile.name}-fitted")
+    label = {s.label: f"{s.label} (fitted)" for s in elssim}
+    if elssim:
+        again = realism(spikes, fitted, elssim, seed=seed, segments=segments, alpha=alpha, progress=progress, **kw)
+        result.rows.extend(dict(r, source=label[r["source"]]) for r in again.rows if r["source"] in label)
+        for m, d in again.distances.items():
+            result.distances[label[m]] = d
+        result.notes.setdefault("models", {}).update({label[m]: v for m, v in again.notes["models"].items()})
+    change = {"before_D": {s.label: result.distances[s.label]["D"] for s in elssim if s.label in result.distances},
+              "after_D": {s.label: result.distances[label[s.label]]["D"] for s in elssim}}
+    result.notes["fit"] = {**fit.summary(), **change}
+    return change
+
+
 # ------------------------------------------------------------------- output
 CSV_COLUMNS = ("source", "statistic", "bin", "bin_lo", "bin_hi", "value", "se", "n_pixels", "n_samples")
 
@@ -845,5 +870,5 @@ def write_report(result: RealismResult, out_dir, recording: str = "") -> dict:
 
 
 __all__ = ["realism", "spike_statistics", "stationary_pixels", "estimate_light", "rate_light_curve",
-           "parse_models", "write_report", "fit_profile", "scaled_profile", "FitResult", "RealismResult", "ModelSpec",
+           "parse_models", "write_report", "fit_profile", "add_fitted_models", "scaled_profile", "FitResult", "RealismResult", "ModelSpec",
            "DEFAULT_MODELS", "DISTANCE_MEANING", "FIT_STATISTICS"]

@@ -157,7 +157,7 @@ def run(args) -> int:
 
 def add_fit(result, spikes, base, profile, specs, out, args, say) -> None:
     """Fit dark rate and threshold, write DIR/fitted_profile.npz, add the fitted elssim models to ``result``."""
-    from sensor.realism import fit_profile as fit, realism, scaled_profile
+    from sensor.realism import add_fitted_models, fit_profile as fit, scaled_profile
     say(f"fitting dark rate and threshold of elssim (reset {getattr(profile, 'reset', 'interval')}) to the recording")
     f = fit(spikes, profile, seed=args.seed, n_seeds=args.fit_seeds, n_pixels=args.fit_pixels,
             segments=args.segments, alpha=args.alpha, progress=say)
@@ -169,16 +169,6 @@ def add_fit(result, spikes, base, profile, specs, out, args, say) -> None:
         "dark_scale": f.dark_scale, "dark_scale_sd": f.dark_scale_sd, "threshold_scale": f.threshold_scale,
         "threshold_scale_sd": f.threshold_scale_sd, "method": f.notes["method"]}})
     path = full.save(out / "fitted_profile.npz")
-    elssim = [s for s in specs if s.name == "elssim"]
-    fitted_window = scaled_profile(profile, f.dark_scale, f.threshold_scale, name=f"{profile.name}-fitted")
-    if elssim:
-        again = realism(spikes, fitted_window, elssim, seed=args.seed, segments=args.segments, alpha=args.alpha,
-                        progress=say)
-        label = {s.label: f"{s.label} (fitted)" for s in elssim}
-        result.rows.extend(dict(r, source=label[r["source"]]) for r in again.rows if r["source"] in label)
-        for m, d in again.distances.items():
-            result.distances[label[m]] = d
-        result.notes["models"].update({label[m]: v for m, v in again.notes["models"].items()})
-    result.notes["fit"] = {**f.summary(), "fitted_profile_file": str(path),
-                           "before_D": {s.label: result.distances[s.label]["D"] for s in elssim},
-                           "after_D": {s.label: result.distances[f"{s.label} (fitted)"]["D"] for s in elssim}}
+    add_fitted_models(result, spikes, profile, f, specs, seed=args.seed, segments=args.segments, alpha=args.alpha,
+                      progress=say)
+    result.notes["fit"]["fitted_profile_file"] = str(path)
