@@ -5,6 +5,9 @@ The numpy-only parts import here; the network (``recon.nets``), training (``reco
 torch-facing pieces import PyTorch lazily. See ``docs/recon.md``.
 """
 
-from .classic import (invert_renewal_rate, renewal_spike_rate, tfi, tfp, tfp_deadtime, tfp_windows)
+from .baselines import tfp_dt_denoised
+from .classic import (deadtime_correct, invert_renewal_rate, renewal_spike_rate, tfi, tfp, tfp_deadtime,
+                      tfp_windows)
 
-__all__ = ["tfp", "tfp_windows", "tfi", "tfp_deadtime", "renewal_spike_rate", "invert_renewal_rate"]
+__all__ = ["tfp", "tfp_windows", "tfi", "tfp_deadtime", "deadtime_correct", "tfp_dt_denoised",
+           "renewal_spike_rate", "invert_renewal_rate"]
