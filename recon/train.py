@@ -93,7 +93,11 @@ def read_loss_csv(path) -> list[dict]:
     if not path.is_file():
         return []
     with path.open(newline="") as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        try:
+            return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        except (TypeError, ValueError, csv.Error) as exc:
+            raise InputError(f"the loss log is corrupt ({exc}); delete it to resume without the earlier curve",
+                             path=path) from exc
 
 
 def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
@@ -200,7 +204,11 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                          f"{model.config.n_windows}", field="--data")
     opt = torch.optim.Adam(model.parameters(), lr=lr_at(step, cfg))
     if ckpt is not None and "optimizer" in ckpt:
-        opt.load_state_dict(ckpt["optimizer"])
+        try:
+            opt.load_state_dict(ckpt["optimizer"])
+        except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+            raise InputError(f"the optimizer state does not fit the network ({exc})", path=last,
+                             field="optimizer") from exc
 
     info = {"format": "render2spike-train-run", "version": 1, "network": model.config.to_dict(),
             "train": asdict(cfg), "device": str(device), "provenance": provenance()}

@@ -248,12 +248,14 @@ def crossing_hot_pixel_isi_moments(mu, sigma, p_dark=0.0, f=0.0, n_bins: int = 2
     M[-1] = 1.0
     rhs = np.zeros(S)
     rhs[-1] = 1.0
-    pi = np.clip(np.linalg.solve(M, rhs), 0, None)
+    # scipy's LAPACK solve: numpy's is ~100x slower here (thread start-up on small matrices)
+    from scipy.linalg import solve
+    pi = np.clip(solve(M, rhs), 0, None)
     nu = pi @ A1
     nu /= nu.sum()
     # first passage from nu: E[N] = nu R, E[N^2] = nu (2 A0 (I - A0)^-1 R + R), R = (I - A0)^-1 1
     I_A0 = np.eye(S) - A0
-    R = np.linalg.solve(I_A0, np.ones(S))
+    R = solve(I_A0, np.ones(S))
     m1 = float(nu @ R)
-    m2 = float(nu @ (2 * A0 @ np.linalg.solve(I_A0, R) + R))
+    m2 = float(nu @ (2 * A0 @ solve(I_A0, R) + R))
     return m1, m2 - m1 * m1

@@ -12,20 +12,24 @@ Estimators (see ``docs/sensor.md`` for the derivations and departures):
   ordinary dark events get the population median mu_DC; its hot charge
   (``mu_HP``, ``sigma_HP`` in threshold units per interval) is fitted to the mean
   and variance of its dark inter-spike intervals with the exact numerical
-  first-passage model (:func:`sensor.theory.fit_hot_pixel`).
-* **PRNU** (Eq. 5): each flat recording's per-pixel spike rate is converted to
-  an effective photoelectron rate by inverting the exact renewal relation
-  (refractory period, reset to zero and the pixel's own dark rate removed; the
-  paper subtracts mu_DC from TFP, which is biased at high rates). The gain is
-  the slope of a least-squares line through the origin of each pixel's rate
-  against the level mean over all levels (the paper's regression). Gains are
-  normalised to mean 1 over non-hot pixels. Because the model multiplies
-  photoelectron *counts* by the gain, the identifiable quantity is the
-  effective gain ``theta / ceil(theta / g)``.
+  first-passage model of the decided reset (:func:`sensor.theory.fit_hot_pixel`
+  with :func:`sensor.theory.hot_pixel_isi_moments` or
+  :func:`sensor.calib_theory.crossing_hot_pixel_isi_moments`), with
+  delta-method standard errors (:func:`hot_pixel_se`).
+* **Reset, PRNU (Eq. 5), threshold, sensitivity** from the flats
+  (:mod:`sensor.flatfield`): the reset from the lag-1 ISI correlation; each
+  level's per-pixel rate inverted through the exact rate-vs-light law of that
+  reset; gains from a rank-1 fit weighted by the information each (level,
+  pixel) carries (levels on the interval reset's staircase get none); the
+  threshold in electrons by photon transfer (maximum likelihood on the ISI law
+  for the interval reset, the variance-time slope of read-out ISI sums for the
+  crossing reset); with the flats' illuminance, the sensitivity in
+  photoelectrons per lux per interval. Because the model multiplies
+  photoelectron *counts* by the gain, the identifiable quantities are the
+  effective gain ``theta / ceil(theta / g)`` and ``theta = 1 / mean(1 / k)``.
 
-Threshold, pixel pitch, fill factor, QE, clock and refractory time cannot be
-identified from dark and flat recordings of unknown brightness; they are taken
-from a base profile.
+Pixel pitch, fill factor, QE, clock and refractory time cannot be identified
+from dark and flat recordings; they are taken from a base profile.
 """
 
 from __future__ import annotations
@@ -137,11 +141,14 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     flat : list of (array | path)
         Flat-field recordings (no lens, uniform light), one per brightness level;
         at least two recordings, of which at least one must have a usable signal
-        (mean spike rate above twice the dark rate and below 0.9); every usable
-        level enters the regression, and more levels give a better estimate.
+        (mean spike rate above twice the dark rate and below 0.9). Each (level,
+        pixel) is weighted by the information it carries; the report says which
+        levels were used and why. Under the interval reset, levels where the
+        read-out is nearly deterministic (the staircase, typically above ~0.1
+        spikes/interval at theta = 2000 e-) carry none: record dim flats too.
     base : SensorProfile or str
-        Supplies what spike recordings cannot identify: threshold, refractory
-        time, pitch, fill factor, QE, clock, interval.
+        Supplies what spike recordings cannot identify (refractory time, pitch,
+        fill factor, QE, clock, interval) and the starting threshold.
     hot_threshold : float
         theta_HT: spikes per interval above the median dark rate that make a pixel hot.
     height, width, drop_columns : int
@@ -165,6 +172,14 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     Returns
     -------
     (SensorProfile, CalibrationReport)
+        The report's ``numbers`` hold, among others: ``reset``, ``reset_z``,
+        ``reset_confidence``, ``reset_levels``; ``threshold_e``,
+        ``threshold_se``, ``threshold_note``; ``sensitivity_e_per_lux``,
+        ``sensitivity_se`` (with ``flat_lux``); per level ``level_light_e``,
+        ``level_information_share``, ``level_used``, ``level_reason``;
+        ``prnu_se_median``, ``prnu_enough``; ``hot_mu_sigma`` (row, col, mu,
+        its SE, sigma, its SE, ISIs). Maps: ``prnu_se``, ``sensitivity``,
+        ``sensitivity_se``.
     """
     say = progress or (lambda msg: None)
     base = base if isinstance(base, SensorProfile) else SensorProfile.load(base)
@@ -227,7 +242,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     f_map = base.refractory_fraction.astype(np.float64)
     if fit["reset"] == "crossing":
         def moments(m_, s_, p_, f_):
-            return crossing_hot_pixel_isi_moments(m_, s_, p_, f_, n_bins=120)
+            return crossing_hot_pixel_isi_moments(m_, s_, p_, f_, n_bins=200)
     else:
         def moments(m_, s_, p_, f_):
             return hot_pixel_isi_moments(m_, s_, p_)

@@ -532,6 +532,8 @@ if HAVE_NUMBA:
                        hot_mu, hot_sigma, theta, rem, dark_next, blind, guard, v, out):
         """``elssim`` with the crossing reset (see ELSSimCrossingFast): continuous firing times, no interval reset.
 
+        Times are >= 0 and positions >= the piece start, so ``int()`` truncation is the floor throughout.
+
         Per non-hot pixel: ``rem`` is the light (expected photoelectrons) still to collect before the next firing,
         counted from the end of the last piece done, the target being a Gamma(k, 1) variate in the rescaled time
         Lambda(t) = int lambda (the time-rescaling of the photoelectron Poisson process); ``dark_next`` the time
@@ -587,7 +589,7 @@ if HAVE_NUMBA:
                             dark_next[p] = dn
                             guard[p] = -np.inf
                             continue
-                        jb = np.int64(math.floor(bp - fa))
+                        jb = np.int64(bp - fa)
                         G += jb * l0 + sl * 0.5 * jb * (jb - 1) + (bp - fa - jb) * (l0 + sl * jb)  # light lost
                     done = False
                     while True:
@@ -602,17 +604,15 @@ if HAVE_NUMBA:
                             tl = fa + (x - 1) + (fx if fx < 1.0 else 1.0)
                         if dn < tl:  # a dark event first
                             tau = dn
-                            jt = np.int64(math.floor(tau - fa))
+                            jt = np.int64(tau - fa)
                             lt = jt * l0 + sl * 0.5 * jt * (jt - 1) + (tau - fa - jt) * (l0 + sl * jt)
                         else:
                             tau = tl
                             jt = x - 1
                             lt = G
-                        mi = np.int64(math.floor(tau))
+                        mi = a + jt  # the interval of the firing
                         if mi >= end:
                             mi = end - 1
-                        if mi < a:
-                            mi = a
                         out[mi - m0, p >> 3] |= np.uint8(1 << (p & 7))
                         g_new = _gamma(rng, xs, gb[p], gc[p])  # the next target, counted from the end of blindness
                         pos = tau + fr[p]
@@ -623,7 +623,7 @@ if HAVE_NUMBA:
                             rem[p] = g_new
                             done = True
                             break
-                        jp = np.int64(math.floor(pos - fa))
+                        jp = np.int64(pos - fa)
                         if jp == jt:  # the blind time ends in the same interval: f * lambda of it is lost
                             G = lt + fr[p] * (l0 + sl * jt) + g_new
                         else:
@@ -633,6 +633,7 @@ if HAVE_NUMBA:
                     dark_next[p] = dn
                     guard[p] = -np.inf if blind[p] > fend else dn
         # ---- hot pixels: event by event in continuous time
+        scratch = np.empty(256)
         for i in range(npc):
             a = m0 + start[i]
             n = length[i]
@@ -660,11 +661,16 @@ if HAVE_NUMBA:
                             # no firing and no clipping possible in the window: only the end charge matters
                             vv = vv + gain[h] * nph + cur * L
                         else:  # walk the arrivals (iid uniform times given their number), in time order
-                            arr = np.empty(np.int64(nph) + 1)
-                            for e in range(np.int64(nph)):
-                                arr[e] = sp + L * _uniform(xs)
-                            arr[np.int64(nph)] = wend
-                            arr[:np.int64(nph)].sort()
+                            ne = np.int64(nph)
+                            arr = scratch if ne < scratch.size else np.empty(ne + 1)
+                            for e in range(ne):  # insertion sort as they are drawn (few: ~lambda)
+                                u = sp + L * _uniform(xs)
+                                j = e
+                                while j > 0 and arr[j - 1] > u:
+                                    arr[j] = arr[j - 1]
+                                    j -= 1
+                                arr[j] = u
+                            arr[ne] = wend
                             t0 = sp
                             for e in range(np.int64(nph) + 1):
                                 tn = arr[e]
@@ -684,7 +690,7 @@ if HAVE_NUMBA:
                             tau = d
                         if tau == np.inf:
                             break
-                        mi = np.int64(math.floor(tau))
+                        mi = np.int64(tau)
                         if mi > a + q:
                             mi = a + q
                         out[mi - m0, h >> 3] |= np.uint8(1 << (h & 7))

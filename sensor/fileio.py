@@ -15,6 +15,9 @@ from pathlib import Path
 
 #: temp files of atomic writes still in progress in this process (removed by :func:`remove_live_temps`)
 _LIVE_TEMPS: set = set()
+#: (folder, name prefix) of every temp file this process is creating: a signal can land between the file's
+#: creation and its registration in ``_LIVE_TEMPS`` (inside ``tempfile.mkstemp``), so the prefix goes first
+_LIVE_PREFIXES: set = set()
 
 
 def remove_live_temps() -> list[Path]:
@@ -26,6 +29,12 @@ def remove_live_temps() -> list[Path]:
             Path(tmp).unlink()
             gone.append(Path(tmp))
         _LIVE_TEMPS.discard(tmp)
+    for folder, prefix in list(_LIVE_PREFIXES):
+        for tmp in Path(folder).glob(prefix + "*"):
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+                gone.append(tmp)
+        _LIVE_PREFIXES.discard((folder, prefix))
     return gone
 
 
@@ -43,12 +52,13 @@ def atomic_path(path, suffix: str | None = None):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.part-{os.getpid()}-",
-                               suffix=path.suffix if suffix is None else suffix,
-                               dir=path.parent)
+    prefix = f".{path.stem}.part-{os.getpid()}-"
+    _LIVE_PREFIXES.add((str(path.parent), prefix))  # stays registered if a signal cuts mkstemp short
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=path.suffix if suffix is None else suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
     _LIVE_TEMPS.add(tmp)
+    _LIVE_PREFIXES.discard((str(path.parent), prefix))
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the final file the usual permissions

@@ -127,6 +127,8 @@ def invert_rate(reset, rate, k, mu, f):
     p = -np.expm1(-mu)
     r = np.asarray(rate, np.float64)
     k, p, f, r = np.broadcast_arrays(np.asarray(k, np.float64), p, np.asarray(f, np.float64), r)
+    shape = r.shape
+    k, p, f, r = (np.ascontiguousarray(a).reshape(-1) for a in (k, p, f, r))  # any shape in, the same shape out
     ok = (r > p) & (r < 1)
     target = 1.0 / np.where(ok, r, 0.5)
     # start: mean ISI ~ k / lam + 1/2 + f (the read-out rounds the crossing time up), then Newton on the exact mean
@@ -144,7 +146,7 @@ def invert_rate(reset, rate, k, mu, f):
         new = np.clip(lo + step, lo * 0.7, lo * 1.3)
         lam[act] = new
         act = act[np.abs(new - lo) > 1e-9 * lo]
-    return lam / k
+    return (lam / k).reshape(shape)
 
 
 def readout_moments(reset, x, k, mu, f):
@@ -183,7 +185,7 @@ def light_variance(reset, x, k, mu, f, T, rate=None):
 
 
 # ----------------------------------------------------------------------------------------------------- reset
-def test_reset(levels, normal, x_levels, theta, gain, mu, f):
+def decide_reset(levels, normal, x_levels, theta, gain, mu, f):
     """Reset decision from the lag-1 correlation of read-out ISIs.
 
     Interval reset: ISIs are i.i.d. (a discrete renewal process), so the pooled
@@ -459,13 +461,19 @@ def fit_threshold_interval_ml(levels, normal, x_levels, gain, mu, f, theta_pilot
             acc = np.zeros(P)
             for t in terms:
                 k = np.exp(lt) / t["g"]
-                lam = np.maximum(invert_rate("interval", t["rate"], k, t["mu"], t["f"]) * k, 1e-9)
+                if "lam" in t:  # warm start: at a fixed mean ISI the light scales with k
+                    lam = t["lam"] * np.exp(lt - t["lt"])
+                else:
+                    lam = np.maximum(invert_rate("interval", t["rate"], k, t["mu"], t["f"]) * k, 1e-9)
                 e = 1e-3
-                for _ in range(5):
+                for _ in range(6):
                     a, b, c = pix_ll(t, lam * np.exp(-e), k), pix_ll(t, lam, k), pix_ll(t, lam * np.exp(e), k)
                     d1, d2 = (c - a) / (2 * e), (c - 2 * b + a) / e ** 2
-                    step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
-                    lam = lam * np.exp(np.clip(step, -0.1, 0.1))
+                    step = np.clip(np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0), -0.1, 0.1)
+                    lam = lam * np.exp(step)
+                    if np.abs(step).max() < 1e-6:
+                        break
+                t["lam"], t["lt"] = lam, lt
                 acc[t["idx"]] += pix_ll(t, lam, k)
             cache[key] = acc
         return cache[key]
@@ -473,7 +481,7 @@ def fit_threshold_interval_ml(levels, normal, x_levels, gain, mu, f, theta_pilot
     lt0 = np.log(theta_pilot)
     span = np.log(SEARCH_FACTOR)
     res = opt.minimize_scalar(lambda v: -loglik_pix(v).sum(), bounds=(lt0 - span, lt0 + span), method="bounded",
-                              options=dict(xatol=1e-4))
+                              options=dict(xatol=3e-4))
     lt = float(res.x)
     if abs(lt - lt0) > span - 1e-3:
         say(f"warning: the threshold is not identifiable from these flats (the likelihood peaks at the edge of "
@@ -542,7 +550,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
         gain, gain_se, X = fit_gain(x, var_x, nf)
         if reset is None and it == 0:
-            rt = test_reset(levels, nf, list(x), theta, gain, mu, f)
+            rt = decide_reset(levels, nf, list(x), theta, gain, mu, f)
             out.update(rt)
             decided = rt["reset"] or "interval"
             if rt["reset"] is None:

@@ -171,7 +171,13 @@ def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *,
         if t_s.shape != (rate_e.shape[0],):
             raise InputError(f"t_s has shape {t_s.shape}, expected ({rate_e.shape[0]},) to match rate_e",
                              field="t_s")
+        from .rates import check_times, n_intervals_spanned
+        check_times(t_s)
     sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=t_s is None)
+    if t_s is not None and n_intervals_spanned(t_s[0], t_s[-1], sim.profile.interval_s) < 1:
+        raise InputError(f"the keyframes span {t_s[-1] - t_s[0]:.6g} s ({t_s.size} keyframe(s)): less than one whole "
+                         f"interval of {sim.profile.interval_s * 1e6:g} us (need at least two keyframes one interval "
+                         "apart)", field="t_s")
     step = rate_e.shape[0] if not chunk else int(chunk)
     parts = []
     for i in range(0, rate_e.shape[0], max(step, 1)):

@@ -56,8 +56,8 @@ PROVENANCE = {
              "the real Vidar recording uhsr.npz (Spike-Zoo, 250 x 250, 200 intervals, a moving object), pixels "
              "whose ISIs take two adjacent values (a stationarity filter), lag-1 correlation in excess of the "
              "permutation baseline, mean ISI 10-20 intervals (5790 pixels): real -0.194 +- 0.004, crossing reset "
-             "-0.151 +- 0.007, interval reset +0.007 +- 0.006 (both simulated with this profile at the recording's "
-             "per-pixel rates; plain pooled lag-1: real -0.30, crossing -0.26, interval -0.11). At mean ISI 20-40 "
+             "-0.151 +- 0.007, interval reset -0.005 +- 0.007 (both simulated with this profile at the recording's "
+             "per-pixel rates; plain pooled lag-1: real -0.30, crossing -0.27, interval -0.12). At mean ISI 20-40 "
              "(5-9 ISIs per pixel, where the moving object adds positive correlation) real +0.02 +- 0.01, crossing "
              "-0.07, interval 0.00; at 40-100 nothing is resolved. Independently, issue 8 reports -0.51/-0.49/-0.48 "
              "(mean ISI 3-6/6-10/10-20) on a 250 x 400 outdoor Vidar recording against -0.02 for the interval "
@@ -153,29 +153,16 @@ def lag1_isi_correlation_by_mean_isi(spikes, edges=ISI_BINS, max_isi_range: int 
 def light_for_rate(rate, profile: SensorProfile) -> np.ndarray:
     """Photoelectrons per interval that make each pixel of ``profile`` fire at ``rate`` read-out spikes per interval.
 
-    Interval reset: the exact renewal inversion (:func:`sensor.theory.invert_renewal_rate`). Crossing reset: the
-    continuous firing rate ``1 / E[X]`` (:func:`sensor.theory.crossing_inter_firing_mean`, dark events included)
-    solved by bisection; at rates well below one per interval (two firings never share an interval at vidar
-    thresholds) it equals the read-out rate. Rates at or below the dark floor give 0.
+    The exact inversion of the read-out rate for the profile's reset (interval: renewal mean ISI; crossing: the
+    read-out unit of :mod:`sensor.calib_theory`), with each pixel's k = ceil(theta / g), dark rate and refractory
+    time (:func:`sensor.flatfield.invert_rate`). Rates at or below the dark floor give 0.
     """
-    from . import theory
     from .effects import count_threshold
-    rate = np.asarray(rate, np.float64)
+    from .flatfield import invert_rate
     k = count_threshold(profile.threshold_e, profile.prnu_gain).astype(np.float64)
-    f = profile.refractory_fraction.astype(np.float64)
-    mu = profile.dark_rate.astype(np.float64)
-    if profile.reset == "interval":
-        return theory.invert_renewal_rate(rate, k, f, -np.expm1(-mu))
-    lo = np.zeros(rate.shape)
-    hi = np.maximum(8.0 * k * rate, 1e-9)
-    mean_x = np.vectorize(theory.crossing_inter_firing_mean)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        fast_enough = 1.0 / mean_x(mid, k, f, mu) >= rate
-        hi = np.where(fast_enough, mid, hi)
-        lo = np.where(fast_enough, lo, mid)
-    out = 0.5 * (lo + hi)
-    return np.where(rate <= mu / (1.0 + mu * f), 0.0, out)
+    x = invert_rate(profile.reset, np.asarray(rate, np.float64), k, profile.dark_rate.astype(np.float64),
+                    profile.refractory_fraction.astype(np.float64))
+    return np.nan_to_num(np.asarray(x) * k, nan=0.0)
 
 
 def reset_evidence(recording, profile: SensorProfile | None = None, seed: int = 0, edges=ISI_BINS,

@@ -292,7 +292,8 @@ def test_sigterm_is_a_clean_abort(tmp_path):
                              "--out", str(tmp_path / "s.dat"), "--quiet", "--model", "ideal"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.time() + 60
-    while time.time() < deadline and not list(tmp_path.glob(".s.part-*")):
+    # wait until spikes are being written (a non-empty temp file), so that the signal lands mid-stream
+    while time.time() < deadline and not any(p.stat().st_size for p in tmp_path.glob(".s.part-*")):
         time.sleep(0.05)
     assert list(tmp_path.glob(".s.part-*")), "the writer never started"
     proc.send_signal(signal.SIGTERM)
@@ -312,3 +313,35 @@ def test_bad_study_light_levels(tmp_path, capsys):
                     "--quiet"], tmp_path, capsys, "--lux")
     expect_refused(["study", folder, "--out", out, "--window", "20", "--reference-lux", "inf", "--quiet"],
                    tmp_path, capsys, "--reference-lux")
+
+
+def test_python_simulate_refuses_less_than_one_interval():
+    """sensor.simulate with keyframes spanning less than one interval (or a single keyframe) is an error, not []."""
+    import sensor
+    from sensor.errors import InputError
+    prof = sensor.SensorProfile.synthetic(4, 5, threshold_e=100.0, seed=0)
+    with pytest.raises(InputError, match="less than one whole interval"):
+        sensor.simulate(np.ones((1, 4, 5)), prof, t_s=[0.0])
+    with pytest.raises(InputError, match="less than one whole interval"):
+        sensor.simulate(np.ones((2, 4, 5)), prof, t_s=[0.0, 1e-5])
+    with pytest.raises(InputError, match="t_s"):
+        sensor.simulate(np.ones((2, 4, 5)), prof, t_s=[0.0, float("nan")])
+
+
+def test_temp_file_of_a_write_cut_short_inside_mkstemp_is_removed(tmp_path, monkeypatch):
+    """A signal landing between the temp file's creation and its registration still leaves nothing behind."""
+    import tempfile
+
+    from sensor import fileio
+    real = tempfile.mkstemp
+
+    def cut_short(*a, **kw):
+        real(*a, **kw)  # the file exists ...
+        raise KeyboardInterrupt  # ... and the signal lands before mkstemp returns
+    monkeypatch.setattr(tempfile, "mkstemp", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        with fileio.atomic_path(tmp_path / "x.dat"):
+            pass
+    assert list(tmp_path.glob(".x.part-*"))
+    fileio.remove_live_temps()
+    assert not list(tmp_path.iterdir())

@@ -72,7 +72,9 @@ def run(args) -> int:
     from sensor import SensorProfile
     from sensor.calibration import calibrate, write_report
     base_path = args.base if Path(args.base).exists() else None
-    check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
+    out = check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
+    for suffix in (".png", ".json"):  # the report beside the profile is an output too
+        check_output(out.with_name(out.stem + "_report" + suffix), overwrite=args.overwrite)
     base = SensorProfile.load(args.base)
     drop = 16 if args.raw else 0
     width = args.width or ((base.raw_width or base.width + 16) if args.raw else base.width)

@@ -26,7 +26,7 @@ room_pan, lambertian_plane).
 """
 EXAMPLES = """\
 examples:
-  render2spike run scenes/rotating_disk.yaml --out out/demo          # the README demo (~40 s CPU)
+  render2spike run scenes/rotating_disk.yaml --out out/demo          # the README demo (~50 s CPU)
   render2spike run rotating_disk --out out/dim --lux 5 --model elssim --seed 1 --dat
   render2spike run translating_object --out out/ideal --model ideal --duration 0.05 --render-seed 2
 """

@@ -123,7 +123,7 @@ class _NpzMember:
 class RateSource:
     """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT.
 
-    Nothing is read whole: an ``.npy`` is memory-mapped, an ``.npz`` member is decoded
+    Nothing is read whole: an ``.npy`` is read in row chunks at its data offset, an ``.npz`` member is decoded
     chunk by chunk from the zip stream, and a frames folder's EXR files are decoded by a
     reader thread one chunk ahead of the simulation (:meth:`chunks`), so decoding overlaps
     the kernel (which releases the GIL). Memory is a few chunks, flat in duration.
@@ -191,6 +191,23 @@ class RateSource:
             return self.n
         return n_intervals_spanned(self.t_s[0], self.t_s[-1], interval_s)
 
+    def _npy_rows(self, i: int, j: int) -> np.ndarray:
+        """Rows [i, j) of the .npy by plain file reads at the map's data offset (float32).
+
+        Private memory of one chunk, and no file-backed pages left mapped (reading through
+        the map would keep every page read in the process's resident set).
+        """
+        m = self.rate
+        if not m.flags.c_contiguous:  # Fortran order: rows are not contiguous in the file
+            return np.array(m[i:j], dtype=np.float32)
+        row = int(np.prod(m.shape[1:], dtype=np.int64))
+        with open(self.path, "rb") as fh:
+            fh.seek(m.offset + i * row * m.dtype.itemsize)
+            out = np.fromfile(fh, dtype=m.dtype, count=(j - i) * row)
+        if out.size != (j - i) * row:
+            raise ValueError(f"truncated .npy: rows {i}..{j - 1} of {m.shape[0]}")
+        return out.reshape((j - i,) + tuple(m.shape[1:])).astype(np.float32, copy=False)
+
     def _read(self, profile, i: int, j: int) -> np.ndarray:
         from sensor import photoelectron_rate
         if self.kind == "frames":
@@ -202,7 +219,7 @@ class RateSource:
             if self._member is not None:
                 rate = self._member.rows(i, j).astype(np.float32, copy=False)
             else:
-                rate = np.asarray(self.rate[i:j], dtype=np.float32)  # a view of the map for float32 files
+                rate = self._npy_rows(i, j)
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(f"cannot read rows {i}..{j - 1} of rate_e (truncated or corrupt? {exc})",
                              path=self.path, field="rate_e") from exc

@@ -239,9 +239,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             f"{W} intervals (recorded per frame as render_noise_ratio)")
     # noise floor of the change metric: smoothed pilot variance, scaled to the chosen spp
     v_px = pilot_var_px(spp)
-    # (the t = 0 map is stale where objects move, and edges carry most of the render noise: floor at the 99th
-    # percentile so moving edges' noise is not taken for curvature)
-    var_floor = np.maximum(_box(v_px, 2), float(np.quantile(v_px, 0.99)))
+    var_floor = np.maximum(_box(v_px, 2), float(np.median(v_px)))
 
     # ---- adaptive keyframes ---------------------------------------------------------
     acfg = rcfg["adaptive"]
@@ -250,8 +248,9 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover
         tqdm = None
-    # progress in camera time [ms]: frames come in time order (refinements of an interval before the next
-    # base keyframe), so the furthest time asked for only grows; the frame counts are shown beside it
+    # progress in camera time [ms]: the furthest keyframe time asked for so far (base keyframes are rendered
+    # one ahead, refinements fall before it), so the bar only moves forward and its total never changes; the
+    # frame counts (base and refined) are shown beside it
     dur_ms = scene.duration_s * 1e3
     bar = tqdm(total=round(dur_ms, 3), unit="ms", desc=f"render {scene.name}", disable=not progress,
                dynamic_ncols=True, bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} ms camera time "

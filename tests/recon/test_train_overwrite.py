@@ -28,3 +28,7 @@ def test_train_overwrite(tmp_path, capsys):
     assert _cli("train", "--data", data, "--out", run, "--steps", 1, "--overwrite", "--resume", *net) == 2
     assert _cli("train", "--data", data, "--out", run, "--steps", 1, "--batch-size", 1, "--overwrite", *net) == 0
     assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["step"] == 1  # a new run, not 2 + 1
+    (run / "loss.csv").write_text("step,loss\n1,abc\n")
+    assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--resume", "--quiet") == 2
+    err = capsys.readouterr().err
+    assert "loss.csv" in err and "Traceback" not in err

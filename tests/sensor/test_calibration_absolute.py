@@ -122,3 +122,19 @@ def test_warns_when_only_staircase_levels(capsys):
     _, rep = calibrate(dark, flat, base=true, reset="interval", progress=msgs.append)
     assert rep.numbers["prnu_enough"] is False
     assert any("not enough" in m for m in msgs)
+
+
+@pytest.mark.parametrize("reset", ["interval", "crossing"])
+def test_invert_rate_round_trips_any_shape(reset):
+    """The exact rate-vs-light inversion returns the light it was given, for (H, W) as for flat inputs."""
+    from sensor.flatfield import invert_rate, spike_rate
+    x = np.array([[0.02, 0.05], [0.1, 0.3]])  # thresholds per interval (off the interval staircase for k = 100)
+    k = np.full((2, 2), 100.0)
+    mu = np.full((2, 2), 0.004)
+    f = np.full((2, 2), 1 / 250)
+    r = spike_rate(reset, x, k, mu, f).reshape(2, 2)
+    back = invert_rate(reset, r, k, mu, f)
+    assert back.shape == (2, 2)
+    np.testing.assert_allclose(back, x, rtol=1e-6)
+    np.testing.assert_allclose(invert_rate(reset, r.reshape(-1), k.reshape(-1), mu.reshape(-1), f.reshape(-1)),
+                               x.reshape(-1), rtol=1e-6)

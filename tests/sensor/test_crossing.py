@@ -147,9 +147,9 @@ def lag1_cov(s, mean):
 
 
 @pytest.mark.parametrize("impl", IMPLS)
-def test_readout_lag1_isi_correlation_matches_the_phase_chain(impl):
+def test_readout_lag1_isi_correlation_matches_the_phase_chain(impl, slow_scale):
     k, lam = 200, 200 / 3.4  # near-regular firings (continuous CV 1/sqrt(k)): the read-out makes the ISIs alternate
-    H, W, T = 16, 16, 1000
+    H, W, T = 16, 16 * slow_scale, 1000
     prof = crossing_profile(H, W, float(k))
     s = sensor.simulate(np.full((T, H, W), lam, np.float32), prof, "elssim", seed=4, implementation=impl)
     mean, var, rho = theory.crossing_readout_isi_stats(lam, k)
@@ -181,9 +181,9 @@ def discrete_ks(sample, pmf_support, pmf):
 
 # ---------------------------------------------------------------------------------------- Fano factor
 @pytest.mark.parametrize("impl", IMPLS)
-def test_window_count_fano_factor_matches_the_phase_chain(impl):
+def test_window_count_fano_factor_matches_the_phase_chain(impl, slow_scale):
     k, lam = 30, 30 / 2.6
-    H, W, T, skip = 20, 20, 1100, 100
+    H, W, T, skip = 20, 20 * slow_scale, 1100, 100
     prof = crossing_profile(H, W, float(k))
     s = sensor.simulate(np.full((T, H, W), lam, np.float32), prof, "elssim", seed=6, implementation=impl)
     s = s[skip:].reshape(T - skip, -1)
@@ -227,9 +227,9 @@ def test_continuous_time_isi_law_is_blind_time_plus_gamma_or_dark():
 
 
 @pytest.mark.parametrize("impl", IMPLS)
-def test_readout_isi_law_matches_the_phase_chain(impl):
+def test_readout_isi_law_matches_the_phase_chain(impl, slow_scale):
     k, lam = 40, 40 / 3.3
-    H, W, T, j = 30, 30, 60, 6
+    H, W, T, j = 30, 30 * slow_scale, 60, 6
     prof = crossing_profile(H, W, float(k))
     s = sensor.simulate(np.full((T, H, W), lam, np.float32), prof, "elssim", seed=9, implementation=impl)
     x = nth_isis(s, j)  # one ISI per pixel: independent draws of the exact law of the j-th ISI
@@ -326,8 +326,8 @@ def test_hot_pixel_current_fires_at_every_whole_threshold(impl):
 
 # -------------------------------------------------------------------------------- time-varying input
 @pytest.mark.parametrize("impl", IMPLS)
-def test_keyframed_input_follows_the_exact_phase_chain(impl):
-    H, W, k = 30, 40, 15
+def test_keyframed_input_follows_the_exact_phase_chain(impl, slow_scale):
+    H, W, k = 30, 40 * slow_scale, 15
     K = 31  # keyframes every 20 intervals -> 600 intervals
     t = np.arange(K) * 1e-3
     rng = np.random.default_rng(15)

@@ -32,10 +32,13 @@ def test_npz_member_streams_rows_in_chunks(tmp_path, compressed):
     np.testing.assert_array_equal(np.concatenate(parts), a)
 
 
-def test_npy_is_memory_mapped(tmp_path):
-    np.save(tmp_path / "r.npy", np.ones((5, 4, 3), np.float32))
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_npy_rows_are_read_in_chunks(tmp_path, order):
+    a = np.asarray(np.random.default_rng(4).uniform(0, 9, (5, 4, 3)), order=order)
+    np.save(tmp_path / "r.npy", a)
     src = RateSource(tmp_path / "r.npy")
-    assert isinstance(src.rate, np.memmap) and src.per_interval and src.n == 5
+    assert src.per_interval and src.n == 5
+    np.testing.assert_array_equal(np.concatenate([src._npy_rows(0, 2), src._npy_rows(2, 5)]), a.astype(np.float32))
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".npz"])
