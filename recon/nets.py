@@ -344,9 +344,9 @@ class Denoiser(nn.Module):
     """
 
     def __init__(self, width: int = 16, res_blocks: int = 2, attn_depth: int = 2, heads: int = 2,
-                 window: int = 8, mlp_ratio: float = 2.0, attn_dim: int = 0):
+                 window: int = 8, mlp_ratio: float = 2.0, attn_dim: int = 0, extra: int = 0):
         super().__init__()
-        blocks = [ResidualBlock(4, width)] + [ResidualBlock(width, width) for _ in range(max(res_blocks - 1, 0))]
+        blocks = [ResidualBlock(4 + extra, width)] + [ResidualBlock(width, width) for _ in range(max(res_blocks - 1, 0))]
         self.res = nn.Sequential(*blocks)
         dim = int(attn_dim) if attn_dim else width
         self.embed = None
@@ -359,8 +359,8 @@ class Denoiser(nn.Module):
                                                    mlp_ratio=mlp_ratio) for i in range(attn_depth)])
         self.out = nn.Conv2d(width, 4, 3, padding=1)
 
-    def forward(self, bands):
-        f = self.res(bands)
+    def forward(self, bands, extra=None):
+        f = self.res(bands if extra is None else torch.cat([bands, extra], dim=1))
         if self.embed is None:
             f = self.attn(f)
         else:
@@ -373,12 +373,13 @@ class Denoiser(nn.Module):
 class Refine(nn.Module):
     """``refined = denoised * (1 - w) + fused * w`` with ``w = sigmoid(CNN([fused, denoised]))``."""
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int = 16, extra: int = 0):
         super().__init__()
-        self.mask = _mask_net(8, width)
+        self.mask = _mask_net(8 + extra, width)
 
-    def forward(self, fused, denoised):
-        w = self.mask(torch.cat([fused, denoised], dim=1))
+    def forward(self, fused, denoised, extra=None):
+        x = torch.cat([fused, denoised] + ([extra] if extra is not None else []), dim=1)
+        w = self.mask(x)
         return denoised * (1 - w) + fused * w
 
 
@@ -410,7 +411,7 @@ class RSIRConfig:
 
     ``cumulative``: step ``t`` sees the running mean of windows ``0..t``
     (``t + 1`` windows' worth of spikes) instead of window ``t`` alone, and the
-    fusion mask starts near "take the current step" (its last bias at +2) and
+    fusion mask starts near "take the current step" (its last bias at +5) and
     the denoiser's output convolution at zero. The untrained network then
     already outputs (nearly) the TFP over all the windows, and
     training learns corrections to it (RSIR feeds single windows; see
@@ -423,6 +424,13 @@ class RSIRConfig:
     in the light up to ~0.9 spikes per interval) is already close to the
     target unit, so the network learns denoising rather than sensor physics.
     The normalisation scale still comes from the raw windows.
+
+    ``level_input``: the denoiser's first block and the refine mask also see
+    one constant channel, ``log10`` of the item's mean spike rate times the
+    trained input length ``n_windows * window`` (the mean count per pixel over
+    the trained input; 0 at one spike), so the network knows the light level
+    that the mean normalisation divides out and can smooth dim items more than
+    bright ones.
     """
 
     n_windows: int = 10
@@ -446,6 +454,7 @@ class RSIRConfig:
     norm_level: float = 0.5
     cumulative: bool = False
     linearise: bool = False
+    level_input: bool = False
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -522,10 +531,11 @@ class RSIRNet(nn.Module):
             self.dwt, self.idwt = HaarDWT(), HaarIDWT()
         self.fusion = TemporalFusion(cfg.mask_width)
         if cfg.cumulative:
-            nn.init.constant_(self.fusion.mask[-2].bias, 2.0)
+            nn.init.constant_(self.fusion.mask[-2].bias, 5.0)
+        extra = 1 if cfg.level_input else 0
         self.denoiser = Denoiser(cfg.width, cfg.res_blocks, cfg.attn_depth, cfg.heads, cfg.attn_window,
-                                 cfg.mlp_ratio, cfg.attn_dim)
-        self.refine = Refine(cfg.mask_width)
+                                 cfg.mlp_ratio, cfg.attn_dim, extra)
+        self.refine = Refine(cfg.mask_width, extra)
         if cfg.cumulative:  # start as the identity on the fused bands
             nn.init.zeros_(self.denoiser.out.weight)
             nn.init.zeros_(self.denoiser.out.bias)
@@ -578,6 +588,10 @@ class RSIRNet(nn.Module):
         _check_4d(windows, "windows")
         H, W = windows.shape[-2:]
         s = self.input_scale(windows)
+        level = None
+        if self.config.level_input:  # log10 of the mean rate times the trained input length (raw windows)
+            level = torch.log10((windows.detach().mean(dim=(1, 2, 3), keepdim=True)
+                                 * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
         if self.config.linearise and maps is not None:
             _check_4d(maps, "maps")
             if maps.shape[0] != windows.shape[0] or maps.shape[-2:] != windows.shape[-2:]:
@@ -591,6 +605,8 @@ class RSIRNet(nn.Module):
             windows = windows.cumsum(dim=1) / n.view(1, -1, 1, 1)
         x = self._pad(windows * s)
         feats = self._pad(self.map_features(maps, windows, s))
+        if level is not None:
+            level = level.expand(-1, 1, x.shape[-2] // 2, x.shape[-1] // 2)
         out = {"nim": [], "fusion": [], "denoise": [], "refine": [], "denoise_bands": [], "scale": s}
         prev = None
         for t in range(windows.shape[1]):
@@ -598,8 +614,8 @@ class RSIRNet(nn.Module):
             cur = self.dwt(cur_img)
             prev = cur if prev is None else prev
             fused, _ = self.fusion(prev, cur)
-            denoised = self.denoiser(fused)
-            refined = self.refine(fused, denoised)
+            denoised = self.denoiser(fused, level)
+            refined = self.refine(fused, denoised, level)
             for key, v in (("nim", cur_img), ("fusion", self.idwt(fused)), ("denoise", self.idwt(denoised)),
                            ("refine", self.idwt(refined))):
                 out[key].append(v[..., :H, :W] / s)

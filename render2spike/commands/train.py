@@ -63,6 +63,9 @@ def register(subparsers) -> None:
     p.add_argument("--linearise", action="store_true",
                    help="remove the expected dark spikes and divide by the PRNU gain before the network (see "
                         "docs/recon.md); not with --init")
+    p.add_argument("--level-input", action="store_true",
+                   help="give the denoiser and refine stage the log mean spike count (the light level the mean "
+                        "normalisation divides out); not with --init")
     p.add_argument("--normalise", choices=["mean", "fixed"],
                    help="input/output normalisation (default mean; see below); not with --init")
     p.add_argument("--width", type=int, help="channels of the denoiser (overrides the preset)")
@@ -109,7 +112,8 @@ def run(args) -> int:
         raise InputError("--init lies inside the run directory that --overwrite would empty; copy it elsewhere "
                          "first", path=args.init, field="--init")
     given = [f"--{n.replace('_', '-')}" for n in SIZE_FLAGS + ("size", "normalise") if getattr(args, n) is not None]
-    given += [f for f, on in (("--cumulative", args.cumulative), ("--linearise", args.linearise)) if on]
+    given += [f for f, on in (("--cumulative", args.cumulative), ("--linearise", args.linearise),
+                              ("--level-input", args.level_input)) if on]
     if args.init and given:
         raise InputError(f"--init takes the network layout from the checkpoint; drop {', '.join(given)}",
                          field="--init")
@@ -119,7 +123,7 @@ def run(args) -> int:
     if args.overwrite:
         clear_run(Path(args.out))
     net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
-                             linearise=args.linearise)
+                             linearise=args.linearise, level_input=args.level_input)
     for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:

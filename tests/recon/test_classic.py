@@ -91,15 +91,19 @@ def test_tfp_deadtime_unbiased_on_constant_input(z):
     Tolerance = z * SE + 2 * lambda / count. Plain TFP * theta is shown to miss
     by more than that (refractory loss, discarded excess charge, dark spikes).
     """
-    lam_true, theta = 8.0, 200.0
-    prof = SensorProfile.synthetic(32, 32, threshold_e=theta, prnu_sigma=0.05, dark_rate=0.004, seed=1)
-    s = simulate(np.full((8200, 32, 32), lam_true, np.float32), prof, "elssim", seed=3)[200:]
+    prof = SensorProfile.synthetic(32, 32, threshold_e=200.0, prnu_sigma=0.05, dark_rate=0.004, seed=1)
+    _check_unbiased(prof, 8.0, 8200, z)
+
+
+def _check_unbiased(prof, lam_true, n_intervals, z):
+    """tfp_deadtime within z * SE + 2 lam / count of lam_true at constant light; plain TFP * theta > 3x that off."""
+    s = simulate(np.full((n_intervals, 32, 32), lam_true, np.float32), prof, "elssim", seed=3)[200:]
     est = tfp_deadtime(s, prof).astype(np.float64)
     count = s.sum(axis=0).mean()
     se = est.std(ddof=1) / np.sqrt(est.size)
     tol = z * se + 2.0 * lam_true / count
     assert abs(est.mean() - lam_true) < tol, (est.mean(), tol)
-    naive = (tfp(s) * theta).mean()
+    naive = (tfp(s) * prof.threshold_e).mean()
     assert abs(naive - lam_true) > 3 * tol
 
 
@@ -117,14 +121,6 @@ def test_tfp_deadtime_unbiased_for_the_crossing_reset(z):
     estimates, plus 2 lam / count for the start-up and Jensen terms. Plain TFP * theta misses by far more
     (dark spikes, refractory loss).
     """
-    lam_true, theta = 400.0, 2000.0
-    prof = SensorProfile.synthetic(32, 32, threshold_e=theta, prnu_sigma=0.05, dark_rate=0.01, dark_rate_spread=0.3,
+    prof = SensorProfile.synthetic(32, 32, threshold_e=2000.0, prnu_sigma=0.05, dark_rate=0.01, dark_rate_spread=0.3,
                                    reset="crossing", seed=1)
-    s = simulate(np.full((4200, 32, 32), lam_true, np.float32), prof, "elssim", seed=3)[200:]
-    est = tfp_deadtime(s, prof).astype(np.float64)
-    count = s.sum(axis=0).mean()
-    se = est.std(ddof=1) / np.sqrt(est.size)
-    tol = z * se + 2.0 * lam_true / count
-    assert abs(est.mean() - lam_true) < tol, (est.mean(), tol)
-    naive = (tfp(s) * theta).mean()
-    assert abs(naive - lam_true) > 3 * tol
+    _check_unbiased(prof, 400.0, 4200, z)

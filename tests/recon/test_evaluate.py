@@ -97,8 +97,30 @@ def test_train_resume_evaluate_reconstruct_cli(tiny_davis, tmp_path, capsys):
                 "--formats", "npy", "--overwrite") == 0
     assert (rec / "s_tfp_0000200.png").is_file()  # --overwrite replaces only what it writes
     assert np.load(rec / "s_rsir_0000200.npy").shape == (8, 8)
-    assert _cli("reconstruct", sp, "--method", "rsir", "--out", rec) == 2
+    # without --checkpoint: the network shipped with the package
+    assert _cli("reconstruct", sp, "--method", "rsir", "--out", rec, "--formats", "npy", "--overwrite") == 0
+    assert np.all(np.isfinite(np.load(rec / "s_rsir_0000200.npy")))
     capsys.readouterr()
+
+
+@pytest.mark.torch
+def test_the_shipped_model_is_small_packaged_and_documented():
+    import tomllib
+    from pathlib import Path
+
+    from recon.nets import load_checkpoint
+    from recon.reconstruct import PRETRAINED, default_checkpoint
+    assert default_checkpoint() == PRETRAINED and PRETRAINED.stat().st_size < 3_000_000
+    model, ck = load_checkpoint(PRETRAINED)
+    assert model.config.normalise == "mean" and "optimizer" not in ck
+    folder = PRETRAINED.parent
+    for name in ("config.json", "loss.csv", "loss.png", "evaluation.md", "summary.json"):
+        assert (folder / name).is_file(), name
+    cfg = json.loads((folder / "config.json").read_text())
+    assert cfg["network"] == ck["config"]  # the config beside it is the model's
+    root = Path(__file__).resolve().parents[2]
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["recon"]
+    assert "pretrained/*.pt" in data
 
 
 @pytest.mark.torch

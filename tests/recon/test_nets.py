@@ -182,3 +182,24 @@ def test_cumulative_network_starts_as_the_full_window_tfp():
     # the fusion mask starts at sigmoid(2) = 0.88 on the current (cumulative) step: close to the full mean,
     # far closer than to the last window alone
     assert (out - full).abs().mean() < 0.1 * (out - last).abs().mean()
+
+
+def test_linearise_and_level_input():
+    """linearise removes the expected dark spikes and the gain; level_input feeds log10(mean count) to the denoiser."""
+    cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8, mask_width=8,
+                          normalise="mean", cumulative=True, linearise=True, level_input=True)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        net = RSIRNet(cfg).eval()
+    assert net.denoiser.res[0].body[0].in_channels == 5 and net.refine.mask[0].in_channels == 9
+    p, g = 0.01, 1.25
+    y = torch.rand(1, 1, 16, 16, generator=_gen(9)) * 0.1  # the clean signal in target units
+    w = (y * g * (1 - p) + p).expand(1, 10, 16, 16).contiguous()  # noise-free windows with dark spikes and gain
+    maps = torch.stack([torch.full((1, 16, 16), p), torch.full((1, 16, 16), g)], dim=1)
+    # untrained: identity NIM, zero denoiser output, fusion ~ the current step -> output ~ the linearised input
+    torch.testing.assert_close(net.reconstruct(w, maps), y, rtol=0.02, atol=1e-4)
+    with torch.no_grad():  # the level channel reaches the denoiser: perturbing its weight changes the output
+        net.denoiser.out.weight.add_(0.1)
+        a = net.reconstruct(w, maps)
+        net.denoiser.res[0].body[0].weight[:, 4].add_(1.0)
+        assert not torch.allclose(a, net.reconstruct(w, maps))
