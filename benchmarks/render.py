@@ -17,10 +17,10 @@ Sections
 1. **Throughput and overhead** (per bundled scene, at its 64 x 96 window and at
    the full 250 x 400 sensor; fixed spp, adaptive refinement off): the pipeline
    (``render_scene``: frame render, Phi/E conversion, EXR write, state file,
-   metric) per frame, from its first frame render to its return, against a
-   bare ``mi.render`` + ``np.asarray`` of the same loaded scene at the same
-   times and spp in the same process (after a warm-up render, so JIT
-   compilation is in neither). Samples/s = pixels x spp / bare seconds.
+   metric) per frame against a bare ``mi.render`` + ``np.asarray`` of the same
+   loaded scene at the same time and spp, timed right after each pipeline frame
+   (interleaved, so a drifting load hits both alike; JIT compilation is in
+   neither). Samples/s = pixels x spp / bare seconds.
 2. **Keyframes per camera-second** (per scene at its window, 1 and 50 lux; also
    5 lux on the rotating disk;
    each version's budget spp with the scene's own ``max_spp``, the scene's own
@@ -67,7 +67,13 @@ def _load(name, sets=(), lux=None, duration_s=None):
 
 
 def m_overhead(cfg):
-    """Section 1 in this process: pipeline per frame vs bare mi.render on the same loaded scene."""
+    """Section 1 in this process: pipeline per frame vs bare mi.render on the same loaded scene, interleaved.
+
+    After every frame the pipeline renders, a bare ``mi.render`` + ``np.asarray`` of the same scene,
+    time and spp is timed right there; the pipeline's time per frame is the time between the starts
+    of consecutive frames minus that bare render (the last: until ``render_scene`` returns). Bare and
+    pipeline frames alternate, so a drifting load hits both alike.
+    """
     from render2spike.render import renderer as rmod
     from render2spike.render.job import render_scene
     _quiet()
@@ -76,14 +82,27 @@ def m_overhead(cfg):
     sc0 = _load(cfg["scene"], sets)
     rate = float(sc0.render["keyframe_rate_hz"])
     sc = _load(cfg["scene"], sets, duration_s=(n - 1) / rate)
-    seen = {}
+    st = {"pipe": [], "bare": [], "prev": None}
     orig = rmod.SceneRenderer.render_frame
 
-    def wrapped(self, *a, **k):
-        if "t_first" not in seen:
-            seen["t_first"] = time.perf_counter()
-            seen["rnd"] = self
-        return orig(self, *a, **k)
+    def wrapped(self, t_s, *a, **k):
+        t_in = time.perf_counter()
+        if st["prev"] is not None:
+            st["pipe"].append(t_in - st["prev"][0] - st["prev"][1])
+        else:
+            st["t_first"] = t_in
+            st["rnd"] = self
+            # warm the bare path once (same kernels as the pipeline's, already compiled by the pilot)
+            np.asarray(self.mi.render(self.mi_scene, sensor=self.sensor, seed=1, spp=spp))
+            t_in = time.perf_counter()
+        out = orig(self, t_s, *a, **k)
+        t0 = time.perf_counter()
+        self.set_time(t_s)
+        np.asarray(self.mi.render(self.mi_scene, sensor=self.sensor, seed=1000 + len(st["bare"]), spp=spp))
+        b = time.perf_counter() - t0
+        st["bare"].append(b)
+        st["prev"] = (t_in, b)
+        return out
     rmod.SceneRenderer.render_frame = wrapped
     try:
         with tempfile.TemporaryDirectory() as d:
@@ -92,24 +111,17 @@ def m_overhead(cfg):
             t_end = time.perf_counter()
     finally:
         rmod.SceneRenderer.render_frame = orig
-    rnd = seen["rnd"]
-    mi = rnd.mi
-    times = [i / rate for i in range(res.n_frames)]
-    np.asarray(mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1, spp=spp))  # warm (kernels are cached anyway)
-    t = time.perf_counter()
-    for i, ts in enumerate(times):
-        rnd.set_time(ts)
-        np.asarray(mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1000 + i, spp=spp))
-    bare = time.perf_counter() - t
-    pipe = t_end - seen["t_first"]
+    st["pipe"].append(t_end - st["prev"][0] - st["prev"][1])
+    rnd = st["rnd"]
+    pipe, bare = float(np.sum(st["pipe"])), float(np.sum(st["bare"]))
     from render2spike.render.noise import VERIFY_EVERY
-    n_verified = len(range(0, res.n_frames, VERIFY_EVERY))
     H, W = rnd.height, rnd.width
     return {"scene": cfg["scene"], "resolution": f"{H}x{W}", "spp": spp, "frames": res.n_frames,
-            "setup_s": seen["t_first"] - t_all, "pipeline_s_per_frame": pipe / res.n_frames,
+            "setup_s": st["t_first"] - t_all, "pipeline_s_per_frame": pipe / res.n_frames,
             "bare_s_per_frame": bare / res.n_frames, "overhead_ratio": pipe / bare,
+            "overhead_ratio_median_frame": float(np.median(np.asarray(st["pipe"]) / np.asarray(st["bare"]))),
             "samples_per_s": H * W * spp * res.n_frames / bare, "variant": rnd.variant,
-            "verification_launches": n_verified}
+            "verification_launches": len(range(0, res.n_frames, VERIFY_EVERY))}
 
 
 def m_keyframes(cfg):
@@ -234,16 +246,18 @@ def write_report(res, meta, out_dir: Path) -> Path:
          f"Machine: {meta['cpu']}, {meta['cores']} cores; Mitsuba variant {meta.get('variant', '?')}  ",
          f"Load average before / after: {meta['load_before']} / {meta['load_after']}  ",
          f"Old code: {meta['old'] or 'not measured'}", "", "No GPU was lent to this run: CPU (LLVM) figures only.", ""]
+    if meta.get("note"):
+        L += [meta["note"], ""]
     if res.get("overhead"):
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", "",
               "The pipeline includes the noise verification launches (the first and every 32nd frame: "
               "1 extra launch in 32 frames).", "",
-              "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
+              "| median per frame |", "|---|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
             L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
                      f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
-                     f"{_fmt(r['overhead_ratio'], 3)} |")
+                     f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_median_frame'), 3)} |")
         L.append("")
     if res.get("keyframes"):
         L += ["## Keyframes per camera-second (window, budget spp, shortened clip)", "",
