@@ -482,15 +482,8 @@ def realism(spikes, profile: SensorProfile, models=DEFAULT_MODELS, *, seed: int 
     max_warmup : most intervals simulated and dropped before the compared stream (the recording starts with
         every pixel at a random phase, a simulation with empty integrators).
     """
-    from .simulate import simulate
     say = progress or (lambda msg: None)
-    s = np.asarray(spikes, bool)
-    if s.ndim != 3:
-        raise InputError(f"spikes must be (T, H, W); got shape {s.shape}")
-    T, H, W = s.shape
-    if profile.shape != (H, W):
-        raise InputError(f"profile '{profile.name}' is {profile.height} x {profile.width} but the recording is "
-                         f"{H} x {W}; pass a profile (or window) of the recording's size", field="profile")
+    s, (T, H, W) = _checked_recording(spikes, profile)
     specs = parse_models(",".join(m.label if isinstance(m, ModelSpec) else m for m in models))
     keep, st = stationary_pixels(s, segments, alpha)
     say(f"stationarity: {st['stationary']} of {H * W} pixels pass (neighbourhood counts in {segments} segments: "
@@ -629,13 +622,7 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     from .vidar import light_for_rate
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
-    s = np.asarray(spikes, bool)
-    if s.ndim != 3:
-        raise InputError(f"spikes must be (T, H, W); got shape {s.shape}")
-    T, H, W = s.shape
-    if profile.shape != (H, W):
-        raise InputError(f"profile '{profile.name}' is {profile.height} x {profile.width} but the recording is "
-                         f"{H} x {W}", field="profile")
+    s, (T, H, W) = _checked_recording(spikes, profile)
     if n_seeds < 1:
         raise InputError(f"n_seeds must be >= 1; got {n_seeds}", field="n_seeds")
     keep, _ = stationary_pixels(s, segments, alpha)
@@ -872,3 +859,15 @@ def write_report(result: RealismResult, out_dir, recording: str = "") -> dict:
 __all__ = ["realism", "spike_statistics", "stationary_pixels", "estimate_light", "rate_light_curve",
            "parse_models", "write_report", "fit_profile", "add_fitted_models", "scaled_profile", "FitResult", "RealismResult", "ModelSpec",
            "DEFAULT_MODELS", "DISTANCE_MEANING", "FIT_STATISTICS"]
+
+
+def _checked_recording(spikes, profile):
+    """``spikes`` as bool (T, H, W) and its shape, checked against the profile's (H, W)."""
+    s = np.asarray(spikes, bool)
+    if s.ndim != 3:
+        raise InputError(f"spikes must be (T, H, W); got shape {s.shape}")
+    T, H, W = s.shape
+    if profile.shape != (H, W):
+        raise InputError(f"profile '{profile.name}' is {profile.height} x {profile.width} but the recording is "
+                         f"{H} x {W}; pass a profile (or window) of the recording's size", field="profile")
+    return s, (T, H, W)
