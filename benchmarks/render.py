@@ -51,6 +51,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+from tables import fmt as _fmt  # noqa: E402
+
 SCENES = ("rotating_disk", "translating_object", "room_pan", "lambertian_plane")
 LUX = (1.0, 5.0, 50.0)
 
@@ -221,16 +224,6 @@ def _run(kind, cfg, tree: Path | None = None):
     if out.returncode != 0:
         raise RuntimeError(f"{kind} {cfg} ({tree or 'this tree'}) failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
-
-
-def _fmt(x, nd=2):
-    if x is None:
-        return ""
-    if isinstance(x, str):
-        return x
-    if abs(x) >= 1e5 or (0 < abs(x) < 1e-2):
-        return f"{x:.2e}"
-    return f"{x:.{nd}f}"
 
 
 def _dur(s):

@@ -53,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
 from scene import KEYFRAME_HZ, MovingScene, lux_to_rate_e  # noqa: E402
+from tables import fmt as _fmt  # noqa: E402
 from sensor.fileio import write_text_atomic  # noqa: E402
 from sensor.units import intervals_to_seconds, seconds_to_intervals  # noqa: E402
 
@@ -339,16 +340,6 @@ def _machine() -> dict:
         nb = "not installed"
     return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "python": platform.python_version(),
             "numpy": numpy.__version__, "numba": nb, "loadavg": os.getloadavg()}
-
-
-def _fmt(x, nd=2):
-    if x is None or x == "":
-        return ""
-    if isinstance(x, str):
-        return x
-    if abs(x) >= 1e5 or (0 < abs(x) < 1e-2):
-        return f"{x:.2e}"
-    return f"{x:.{nd}f}"
 
 
 def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
