@@ -18,8 +18,8 @@ Sections
    the full 250 x 400 sensor; fixed spp, adaptive refinement off): the pipeline
    (``render_scene``: frame render, Phi/E conversion, EXR write, state file,
    metric) per frame against a bare ``mi.render`` + ``np.asarray`` of the same
-   loaded scene at the same time and spp, timed right after each pipeline frame
-   (interleaved, so a drifting load hits both alike; JIT compilation is in
+   loaded scene at the same times and spp, in blocks ordered pipeline, bare,
+   bare, pipeline (a linearly drifting load cancels; JIT compilation is in
    neither). Samples/s = pixels x spp / bare seconds.
 2. **Keyframes per camera-second** (per scene at its window, 1 and 50 lux; also
    5 lux on the rotating disk;
@@ -70,12 +70,15 @@ def _load(name, sets=(), lux=None, duration_s=None):
 
 
 def m_overhead(cfg):
-    """Section 1 in this process: pipeline per frame vs bare mi.render on the same loaded scene, interleaved.
+    """Section 1 in this process: pipeline vs bare mi.render on the same scene, blocks in the order P B B P.
 
-    After every frame the pipeline renders, a bare ``mi.render`` + ``np.asarray`` of the same scene,
-    time and spp is timed right there; the pipeline's time per frame is the time between the starts
-    of consecutive frames minus that bare render (the last: until ``render_scene`` returns). Bare and
-    pipeline frames alternate, so a drifting load hits both alike.
+    A pipeline block is one ``render_scene`` of ``frames`` frames (fixed spp, adaptive off), timed from its
+    first frame's render to its return (so the pilot and loading are out, the frame writes, journal, manifest
+    and the verification launches are in). A bare block renders the same times at the same spp with
+    ``set_time`` + ``mi.render`` + ``np.asarray`` on the first pipeline's loaded scene, back to back. The
+    order pipeline, bare, bare, pipeline (``rounds`` times, default 2) cancels a load that drifts linearly;
+    overhead = sum of pipeline time / sum of bare time. (Frame-by-frame interleaving, used before, cannot be fair to a background
+    writer: its writes would overlap the bare render, or lose their overlap with the pipeline's own.)
     """
     from render2spike.render import renderer as rmod
     from render2spike.render.job import render_scene
@@ -85,46 +88,60 @@ def m_overhead(cfg):
     sc0 = _load(cfg["scene"], sets)
     rate = float(sc0.render["keyframe_rate_hz"])
     sc = _load(cfg["scene"], sets, duration_s=(n - 1) / rate)
-    st = {"pipe": [], "bare": [], "prev": None}
     orig = rmod.SceneRenderer.render_frame
 
-    def wrapped(self, t_s, *a, **k):
-        t_in = time.perf_counter()
-        if st["prev"] is not None:
-            st["pipe"].append(t_in - st["prev"][0] - st["prev"][1])
-        else:
-            st["t_first"] = t_in
-            st["rnd"] = self
-            # warm the bare path once (same kernels as the pipeline's, already compiled by the pilot)
-            np.asarray(self.mi.render(self.mi_scene, sensor=self.sensor, seed=1, spp=spp))
-            t_in = time.perf_counter()
-        out = orig(self, t_s, *a, **k)
+    def pipeline():
+        st = {"times": []}
+
+        def wrapped(self, t_s, *a, **k):
+            if not st["times"]:
+                st["t_first"], st["rnd"] = time.perf_counter(), self
+            st["times"].append(t_s)
+            return orig(self, t_s, *a, **k)
+        rmod.SceneRenderer.render_frame = wrapped
+        try:
+            with tempfile.TemporaryDirectory() as d:
+                t_all = time.perf_counter()
+                res = render_scene(sc, d, progress=False, log=lambda *a: None)
+                t_end = time.perf_counter()
+        finally:
+            rmod.SceneRenderer.render_frame = orig
+        return t_end - st["t_first"], st["t_first"] - t_all, res, st
+
+    def bare(rnd, times):
+        np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1, spp=spp))  # warm (kernels cached)
         t0 = time.perf_counter()
-        self.set_time(t_s)
-        np.asarray(self.mi.render(self.mi_scene, sensor=self.sensor, seed=1000 + len(st["bare"]), spp=spp))
-        b = time.perf_counter() - t0
-        st["bare"].append(b)
-        st["prev"] = (t_in, b)
-        return out
-    rmod.SceneRenderer.render_frame = wrapped
-    try:
-        with tempfile.TemporaryDirectory() as d:
-            t_all = time.perf_counter()
-            res = render_scene(sc, d, progress=False, log=lambda *a: None)
-            t_end = time.perf_counter()
-    finally:
-        rmod.SceneRenderer.render_frame = orig
-    st["pipe"].append(t_end - st["prev"][0] - st["prev"][1])
-    rnd = st["rnd"]
-    pipe, bare = float(np.sum(st["pipe"])), float(np.sum(st["bare"]))
+        for i, t_s in enumerate(times):
+            rnd.set_time(t_s)
+            np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1000 + i, spp=spp))
+        return time.perf_counter() - t0
+
+    P, B, pairs = [], [], []
+    rnd = times = None
+    for _ in range(int(cfg.get("rounds", 2))):
+        p1, setup, res, st = pipeline()
+        if rnd is None:
+            rnd, times, setup_s = st["rnd"], st["times"], setup
+        b1 = bare(rnd, times)
+        b2 = bare(rnd, times)
+        p2, _, _, _ = pipeline()
+        P += [p1, p2]
+        B += [b1, b2]
+        pairs += [p1 / b1, p2 / b2]
+    pipe, bare_s = float(np.sum(P)), float(np.sum(B))
     from render2spike.render.noise import VERIFY_EVERY
+    n_verify = len(range(0, res.n_frames, VERIFY_EVERY))
     H, W = rnd.height, rnd.width
+    bare_pf = bare_s / (len(B) * len(times))
     return {"scene": cfg["scene"], "resolution": f"{H}x{W}", "spp": spp, "frames": res.n_frames,
-            "setup_s": st["t_first"] - t_all, "pipeline_s_per_frame": pipe / res.n_frames,
-            "bare_s_per_frame": bare / res.n_frames, "overhead_ratio": pipe / bare,
-            "overhead_ratio_median_frame": float(np.median(np.asarray(st["pipe"]) / np.asarray(st["bare"]))),
-            "samples_per_s": H * W * spp * res.n_frames / bare, "variant": rnd.variant,
-            "verification_launches": len(range(0, res.n_frames, VERIFY_EVERY))}
+            "rounds": int(cfg.get("rounds", 2)), "setup_s": setup_s,
+            "pipeline_s_per_frame": pipe / (len(P) * res.n_frames), "bare_s_per_frame": bare_pf,
+            "overhead_ratio": pipe / bare_s, "overhead_ratio_blocks": pairs,
+            # the verification launches are extra renders by design: their estimated cost (one bare frame
+            # each) taken out, what is left is the pipeline's own per-frame cost
+            "overhead_ratio_without_verification": (pipe - len(P) * n_verify * bare_pf) / bare_s,
+            "samples_per_s": H * W * spp * len(times) * len(B) / bare_s, "variant": rnd.variant,
+            "verification_launches": n_verify}
 
 
 def m_keyframes(cfg):
@@ -243,14 +260,18 @@ def write_report(res, meta, out_dir: Path) -> Path:
         L += [meta["note"], ""]
     if res.get("overhead"):
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", "",
-              "The pipeline includes the noise verification launches (the first and every 32nd frame: "
-              "1 extra launch in 32 frames).", "",
+              "Blocks of frames in the order pipeline, bare, bare, pipeline (twice by default); the pipeline "
+              "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
+              "background writer, journal, manifest). It includes the noise verification launches (the first and "
+              "every 32nd frame: 1 extra launch in 32 frames); 'without verification' takes one bare frame per "
+              "verification launch out. 'per block': each pipeline block over its neighbouring bare block.", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
-              "| median per frame |", "|---|---|---|---|---|---|---|---|---|"]
+              "| without verification | per block |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
             L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
                      f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
-                     f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_median_frame'), 3)} |")
+                     f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
+                     + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " |")
         L.append("")
     if res.get("keyframes"):
         L += ["## Keyframes per camera-second (window, budget spp, shortened clip)", "",
@@ -295,6 +316,7 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=16, help="fixed spp of sections 1-2 (default 16)")
     ap.add_argument("--frames", type=int, default=32, help="frames per overhead run at the window (default 32)")
     ap.add_argument("--full-frames", type=int, default=32, help="frames per overhead run at full res (default 32)")
+    ap.add_argument("--rounds", type=int, default=2, help="P B B P rounds per overhead point (default 2)")
     ap.add_argument("--full-spp", type=int, default=4, help="spp of the full-resolution overhead runs (default 4)")
     ap.add_argument("--clip", type=float, default=0.02, help="camera seconds of the keyframe runs (default 0.02)")
     ap.add_argument("--kf-spp", default="auto", help="spp of the keyframe runs (default: auto, each version's budget)")
@@ -320,7 +342,7 @@ def main(argv=None):
         res["overhead"] = []
         for sc in a.scenes:
             for sets, n, spp in (([], a.frames, a.spp), (full, a.full_frames, a.full_spp)):
-                r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets})
+                r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets, "rounds": a.rounds})
                 res["overhead"].append(r)
                 say(f"overhead {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
                     f"{r['overhead_ratio']:.3f}")

@@ -46,13 +46,14 @@ import numpy as np
 
 from sensor.errors import InputError
 from sensor.fileio import provenance, write_json_atomic
-from sensor.frames import MANIFEST_NAME, read_frame, write_frame, write_manifest
+from sensor.frames import MANIFEST_NAME, read_frame, write_manifest
 from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
 from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
 from .scene import Scene
+from .writer import FrameWriter
 
 STATE_NAME = "render_state.json"
 JOURNAL_NAME = "render_journal.jsonl"
@@ -293,10 +294,10 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         attrs = {"spp": int(spp), "render_noise_ratio": float(ratio), "render_noise_window_intervals": W,
                  "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
-        write_frame(out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=t_s, attrs=attrs)
-        wrote["any"] = True
         state["frames"][key] = {"file": name, "time_s": t_s, "render_noise_ratio": float(ratio)}
-        _append_journal(out, {"tick": int(tick), **state["frames"][key]})
+        # written in the background while the next frame renders; its journal line follows the file
+        writer.submit(out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=t_s,
+                      attrs=attrs, record={"tick": int(tick), **state["frames"][key]})
         n_rendered += 1
         advance(tick)
         return f["phi"]
@@ -306,9 +307,14 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
     def on_new(n):
         seen["refined"] += n
 
+    def journal(rec: dict) -> None:  # writer thread: the frame file is in place
+        _append_journal(out, rec)
+        wrote["any"] = True
+
     try:
-        ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
-                               adaptive=bool(acfg["enabled"]))
+        with FrameWriter(on_written=journal) as writer:  # closed (queued frames finished) before the manifest
+            ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
+                                   adaptive=bool(acfg["enabled"]))
     finally:
         if bar:
             bar.close()
