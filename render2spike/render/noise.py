@@ -12,7 +12,10 @@ Definitions (per pixel, rate in e-/interval)
 * render-noise ratio ``rho = sqrt(W mean(v) / (K mean(r)))``: RMS render
   error over RMS shot noise in the window, averaged over the image.
 * The spp is chosen so that ``rho <= target_ratio`` (default 0.2: render
-  variance <= 4 % of shot-noise variance), clipped to [min_spp, max_spp].
+  variance <= 4 % of shot-noise variance), clipped to [min_spp, max_spp];
+  where the sampler offers no count between the band's low edge and the
+  target, the count just above the target but within the band ``[0.75, 1.25] x
+  target`` is taken (see below).
 
 How the variance falls with spp is measured, not assumed
 --------------------------------------------------------
@@ -34,7 +37,19 @@ and the final spp is solved on the measured points alone
 (:class:`Measured`: power laws between neighbouring levels, ``(n1/n)^2`` below
 the first, ``1/n`` beyond the last; both conservative), so it is interpolated,
 never extrapolated, unless ``c`` itself missed. The spp is rounded up to a count
-the sampler takes exactly. Cost: pairs at 4, 16, 64 spp and at ``c``, once.
+the sampler takes exactly.
+
+Interpolation is not enough either: ``multijitter`` lays a count ``n = k m`` on
+``k x m`` strata, and the variance jumps between neighbouring counts (rotating
+disk, 5 lux: 49 spp -> ratio 0.209, 56 -> 0.145, 63 and 64 -> 0.170), so the
+interpolated answer 56 was predicted at 0.187 and achieved 0.145. The answer is
+therefore *snapped* on measured pairs (:func:`snap_to_measured`): the count
+itself and the exact count below it are measured; the count steps up while it
+misses the target and down while the one below meets it; and when the count
+reached falls below the band (``< 0.75 x target``) while the one below is
+within it (``<= 1.25 x target``), the cheaper count is taken. The predicted
+ratio is then the ratio measured at the chosen count. Cost: pairs at 4, 16, 64
+spp and at ``c``, plus usually two at the answer and its neighbour, once.
 
 The budget is then *verified*: some frames (the first, then every
 :data:`VERIFY_EVERY`-th rendered) get a second, independent render whose
@@ -202,6 +217,59 @@ def exact_below(exact, n: int) -> int:
     return 1
 
 
+#: at most this many extra pilot pairs when :func:`snap_to_measured` steps up or down from the model's answer
+SNAP_STEPS = 3
+
+
+def snap_to_measured(spp: int, measure, ratio_of, target_ratio: float, min_spp: int, max_spp: int, exact,
+                     steps: int = SNAP_STEPS) -> tuple[int, dict]:
+    """The sampler's own counts near ``spp``, checked on measured pairs: -> (spp, {count: measured ratio}).
+
+    ``multijitter`` lays its samples on ``k x m`` strata, and the variance is not monotone in the
+    count: on the rotating disk at 5 lux, 49 (7 x 7) spp gives a ratio 0.209, 56 (7 x 8) 0.145 and
+    63, 64 again 0.170. Interpolating between measured levels can therefore land on a count whose
+    noise is far from the prediction. So the model's answer is measured (``measure(n)``: one pilot
+    pair at ``n``, returns its mean variance; ``ratio_of(v)``: the ratio it gives), and then
+
+    * while its ratio is above the target, the next exact count up is measured (at most ``steps``);
+    * while the exact count just below also meets the target, it is taken (at most ``steps``);
+    * if the count reached is below the band (ratio < ``BAND[0] x target``, more samples than the
+      budget needs) while the count just below is within it (ratio <= ``BAND[1] x target``), the
+      cheaper one is taken: the sampler has no count in between, and the band is what the budget
+      promises (its ratio may then exceed the target by up to ``BAND[1]``).
+
+    The answer's ratio is a measurement, not an interpolation. ``exact(n)`` rounds up to a count the
+    sampler takes.
+    """
+    lo, hi = BAND[0] * target_ratio, BAND[1] * target_ratio
+    seen: dict[int, float] = {}
+
+    def r(n):
+        if n not in seen:
+            seen[n] = float(ratio_of(measure(n)))
+        return seen[n]
+    s = int(spp)
+    for _ in range(steps):  # up while the measured ratio misses the target
+        if r(s) <= target_ratio:
+            break
+        up = exact(s + 1)
+        if up > max_spp:
+            break
+        s = up
+    r(s)
+    for _ in range(steps):  # down while the count below meets it too
+        below = exact_below(exact, s - 1) if s > 1 else 0
+        if below < max(1, int(min_spp)):
+            break
+        if r(below) <= target_ratio:
+            s = below
+            continue
+        if r(s) < lo and r(below) <= hi:
+            s = below
+        break
+    return s, seen
+
+
 def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float):
     """Pilot renders at t = 0 -> (budget dict, per-pixel variance function ``v_px(spp)`` in Phi units^2).
 
@@ -214,10 +282,15 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     ncfg = rcfg["noise"]
     exact = rnd.effective_spp
     n1 = exact(int(ncfg["pilot_spp"]))
-    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(8, dtype=np.uint32)
+    # a pair of seeds per level: 4 levels, then the snapping's (2 SNAP_STEPS + 1 at most); the first 8 words
+    # are those of the 8-word state used before the snapping existed
+    seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(2 * (5 + 2 * SNAP_STEPS),
+                                                                                dtype=np.uint32)
     pil, levels, var_means = {}, [], []
 
     def level(j, n):
+        if n in pil:
+            return var_means[levels.index(n)]
         pair = []
         for s in seeds[2 * j:2 * j + 2]:
             raw_p, raw_e = rnd.render_raw(0.0, int(s), n)
@@ -225,6 +298,7 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
         pil[n] = pair
         levels.append(n)
         var_means.append(float(pair_variance(*pair).mean()) * rate_scale ** 2)
+        return var_means[-1]
 
     args = (window_intervals, k_frames, float(ncfg["target_ratio"]), int(ncfg["min_spp"]), int(ncfg["max_spp"]),
             exact)
@@ -242,6 +316,16 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
         level(3, budget["spp"])
     model = Measured(levels, var_means) if len(levels) > 1 else fit_convergence(levels, var_means)
     budget = choose_spp_fit(rate(), model, *args)
+    if not budget["clipped"] and not budget["at_min_spp"]:
+        # the answer and its neighbours measured: multijitter's variance is not monotone in the count
+        r_mean = float(np.mean(rate()))
+        ratio_of = lambda v: math.sqrt(window_intervals * v / (k_frames * r_mean))  # noqa: E731
+        model_spp = budget["spp"]
+        js = iter(range(4, 5 + 2 * SNAP_STEPS))  # seed pairs after the four levels above
+        spp, seen = snap_to_measured(model_spp, lambda n: level(next(js), n), ratio_of,
+                                     float(ncfg["target_ratio"]), int(ncfg["min_spp"]), int(ncfg["max_spp"]), exact)
+        budget.update(spp=int(spp), predicted_ratio=seen[spp], model_spp=int(model_spp),
+                      snapped={str(n): seen[n] for n in sorted(seen)})
     budget["model"] = {"form": "power laws between the measured pilot levels", "fit_A_over_n_B_over_n2":
                        fitted["model"], "alpha_at_pilot": model.alpha_local}
     budget["fit_candidate_spp"] = fitted["spp"]
