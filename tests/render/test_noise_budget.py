@@ -99,3 +99,98 @@ def test_measured_model_interpolates_and_is_conservative_outside():
     # pair noise that makes v rise with n is flattened: V never increases
     m2 = Measured([4, 16, 64], [1.0, 0.1, 0.12])
     assert m2(64) <= m2(16)
+
+
+# ------------------------------------------------------------------ snapping on the sampler's own counts
+#: ratios measured on the rotating disk at 5 lux (64 x 96): multijitter's variance is not monotone in the count
+DISK_5LUX = {36: 0.222, 42: 0.228, 48: 0.216, 49: 0.209, 56: 0.145, 63: 0.170, 64: 0.169, 72: 0.139}
+MJ_COUNTS = [1, 2, 3, 4, 6, 8, 9, 12, 15, 16, 20, 24, 25, 30, 35, 36, 42, 48, 49, 56, 63, 64, 72, 80, 81]
+
+
+def _exact(n):
+    return next(c for c in MJ_COUNTS if c >= n)
+
+
+@pytest.mark.parametrize("start", [48, 49, 56, 63, 64])
+def test_snap_takes_the_count_within_the_band_not_the_interpolated_one(start):
+    """56 meets the target but lands below the band; 49 just above it is within the band and cheaper."""
+    from render2spike.render.noise import snap_to_measured
+    measured = []
+
+    def measure(n):
+        measured.append(n)
+        return DISK_5LUX[n] ** 2  # "variance" whose ratio_of is its square root
+    spp, seen = snap_to_measured(start, measure, math.sqrt, 0.2, 4, 1024, _exact)
+    assert spp == 49 and math.isclose(seen[49], 0.209)
+    assert len(measured) == len(set(measured)) <= 7  # each count measured once, a bounded number of pairs
+    lo, hi = BAND[0] * 0.2, BAND[1] * 0.2
+    assert lo <= seen[spp] <= hi
+
+
+@pytest.mark.parametrize("alpha", [1.0, 1.5, 2.0])
+def test_snap_on_a_monotone_sampler_is_the_least_count_meeting_the_target(alpha):
+    from render2spike.render.noise import snap_to_measured
+    ratio = {n: 0.2 * (30.0 / n) ** (alpha / 2) for n in MJ_COUNTS}  # the target is crossed at n = 30
+    best = min(n for n in MJ_COUNTS if ratio[n] <= 0.2)
+    for start in (24, 25, 30, 35, 36):  # the model's answer a step or two off
+        spp, seen = snap_to_measured(start, lambda n: ratio[n] ** 2, math.sqrt, 0.2, 4, 1024, _exact)
+        # the least count, unless it falls below the band with the one below within it
+        below = MJ_COUNTS[MJ_COUNTS.index(best) - 1]
+        want = below if ratio[best] < BAND[0] * 0.2 and ratio[below] <= BAND[1] * 0.2 else best
+        assert spp == want == 30 and seen[spp] == ratio[30]
+    # min_spp and max_spp bound the search
+    assert snap_to_measured(4, lambda n: ratio[n] ** 2, math.sqrt, 0.2, 4, 1024, _exact)[0] >= 4
+    assert snap_to_measured(9, lambda n: 1.0, math.sqrt, 0.2, 4, 12, _exact)[0] <= 12
+
+
+def test_snap_with_pair_noise_keeps_the_choice_and_the_ratio(z):
+    """Pilot pairs are noisy: each measured ratio is within z standard errors (derived from the pixel
+    statistics of the pair) of the true one, and with no true ratio near a decision edge the choice is the
+    noise-free one."""
+    from render2spike.render.noise import pair_variance, snap_to_measured
+    rng = np.random.Generator(np.random.PCG64(11))
+    w = rng.gamma(2.0, 0.5, 40000)  # heteroscedastic pixels (mean 1), a 200 x 200 image
+    errs = {}
+
+    def measure(n):
+        v = DISK_5LUX[n] ** 2 * w / w.mean()
+        a, b = rng.normal(0, np.sqrt(v)), rng.normal(0, np.sqrt(v))
+        x = pair_variance(a, b)
+        # standard error of the mean of x, relative; the ratio (a square root) has half of it
+        errs[n] = (float(x.mean()), float(x.std(ddof=1) / np.sqrt(x.size) / x.mean()) / 2)
+        return float(x.mean())
+    spp, seen = snap_to_measured(56, measure, math.sqrt, 0.2, 4, 1024, _exact)
+    for n, r in seen.items():
+        assert abs(r / DISK_5LUX[n] - 1) <= z * errs[n][1]
+    # the nearest edges: 49 at 0.209 vs the target 0.2 (4 %), 56 at 0.145 vs 0.15 (3 %): ~4 % of ratio error
+    # is > z x the ~0.45 % standard error here, so the noise-free choice must come out
+    assert max(e for _, e in errs.values()) * z < 0.03
+    assert spp == 49
+
+
+@pytest.mark.render
+@needs_mitsuba
+def test_budget_prediction_matches_an_independent_measurement(write_scene, z):
+    """A static textured scene: the pilot's predicted ratio (a pair at the chosen spp) and the ratio of an
+    independent pair agree within z combined standard errors; the answer is within the band."""
+    from render2spike.render.noise import keyframes_per_window, pilot_budget, render_noise_ratio
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    from tests.render.conftest import BASE
+    lights = BASE["lights"] + [{"name": "sky", "type": "environment", "strength": 0.3}]
+    objs = [{"name": "plane", "shape": "rectangle", "size": [10, 10],
+             "material": {"reflectance": {"texture": "checker", "squares": 40, "low": 0.1, "high": 0.8}}}]
+    sc = load_scene(write_scene({"lights": lights, "objects": objs}), lux=10.0)
+    r = SceneRenderer(sc)
+    W = int(sc.render["noise"]["window_intervals"])
+    K = keyframes_per_window(W, sc.profile.interval_s, float(sc.render["keyframe_rate_hz"]))
+    rs = r.rate_scale()
+    b, _ = pilot_budget(r, sc, W, K, rs)
+    assert not b["clipped"] and not b["at_min_spp"] and str(b["spp"]) in b["snapped"]
+    assert r.effective_spp(b["spp"]) == b["spp"]
+    assert BAND[0] * 0.2 <= b["predicted_ratio"] <= BAND[1] * 0.2
+    f = r.render_frame(0.0, 12345, b["spp"])  # seeds unrelated to the pilot's
+    x = f["phi_var"] * rs ** 2
+    measured = render_noise_ratio(f["phi"] * rs, x, W, K)
+    se = float(x.std(ddof=1) / np.sqrt(x.size) / x.mean()) / 2  # relative standard error of one ratio
+    assert abs(measured / b["predicted_ratio"] - 1) <= z * math.sqrt(2) * se
