@@ -258,8 +258,18 @@ def write_report(res, meta, out_dir: Path) -> Path:
          f"Old code: {meta['old'] or 'not measured'}", "", "No GPU was lent to this run: CPU (LLVM) figures only.", ""]
     if meta.get("note"):
         L += [meta["note"], ""]
+    secs = meta.get("sections") or {}
+
+    def when(*keys):
+        out = []
+        for k in keys:
+            m = secs.get(k)
+            if m:
+                out.append(f"`{k}` measured {m.get('date')} (`{m.get('command')}`), load average before / after "
+                           f"{list(m.get('load_before') or [])} / {list(m.get('load_after') or [])}.")
+        return [" ".join(out), ""] if out else []
     if res.get("overhead"):
-        L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", "",
+        L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", ""] + when("overhead") + [
               "Blocks of frames in the order pipeline, bare, bare, pipeline (twice by default); the pipeline "
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
               "background writer, journal, manifest). It includes the noise verification launches (the first and "
@@ -274,7 +284,7 @@ def write_report(res, meta, out_dir: Path) -> Path:
                      + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " |")
         L.append("")
     if res.get("keyframes"):
-        L += ["## Keyframes per camera-second (window, budget spp, shortened clip)", "",
+        L += ["## Keyframes per camera-second (window, budget spp, shortened clip)", ""] + when("keyframes", "keyframes_old") + [
               "| scene | lux | spp now | clip s | base keyframes | keyframes/s now | keyframes/s old | spp old |",
               "|---|---|---|---|---|---|---|---|"]
         old = {(r["scene"], r["lux"]): r for r in res.get("keyframes_old", [])}
@@ -286,14 +296,14 @@ def write_report(res, meta, out_dir: Path) -> Path:
                      f"{r['keyframes_per_camera_s']:.0f} | {o_kf} | {o_spp} |")
         L.append("")
     if res.get("noise"):
-        L += ["## Render-noise ratio (target 0.2, band 0.15-0.25; rotating disk, max_spp 1024)", "",
+        L += ["## Render-noise ratio (target 0.2, band 0.15-0.25; rotating disk, max_spp 1024)", ""] + when("noise", "noise_old") + [
               "| version | lux | resolution | budget spp | predicted | measured (3 times) |", "|---|---|---|---|---|---|"]
         for r in res.get("noise", []) + res.get("noise_old", []):
             L.append(f"| {r['version']} | {r['lux']:g} | {r['resolution']} | {r['spp']} | {_fmt(r['predicted_ratio'], 3)} | "
                      + ", ".join(f"{x:.3f}" for x in r["measured_ratios"]) + " |")
         L.append("")
     if res.get("wait"):
-        L += ["## Wait for one camera-second (rotating disk, full 250 x 400, budget spp) - EXTRAPOLATED", "",
+        L += ["## Wait for one camera-second (rotating disk, full 250 x 400, budget spp) - EXTRAPOLATED", ""] + when("wait") + [
               f"From {meta['wait_frames']} measured frames per point x keyframes per camera-second at the same lux "
               "(window measurement above) + setup.", "",
               "| version | lux | spp | s/frame | keyframes/s | setup s | wait per camera-second |",
@@ -322,6 +332,11 @@ def main(argv=None):
     ap.add_argument("--kf-spp", default="auto", help="spp of the keyframe runs (default: auto, each version's budget)")
     ap.add_argument("--wait-frames", type=int, default=2, help="frames timed per wait point (default 2)")
     ap.add_argument("--skip", nargs="*", default=[], choices=["overhead", "keyframes", "noise", "wait"])
+    ap.add_argument("--old-for", nargs="*", default=["keyframes", "noise", "wait"],
+                    choices=["keyframes", "noise", "wait"], help="sections that also measure --old (default all)")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the sections (and old-code rows) not measured now from the existing render.json in "
+                         "--out; each section records when and under which load it was measured")
     ap.add_argument("--quick", action="store_true", help="smoke run: rotating disk, few frames, 50 lux")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
@@ -335,10 +350,31 @@ def main(argv=None):
     full = ["camera.profile=vidar-default"]
     load_before = tuple(round(x, 2) for x in os.getloadavg())
     res = {}
+    prev = {}
+    if a.merge and (Path(a.out) / "render.json").is_file():
+        prev = json.loads((Path(a.out) / "render.json").read_text())
+    sections = dict(prev.get("meta", {}).get("sections", {}))
+    if prev and not sections:  # a file from before per-section records: all its sections share its meta
+        m = prev.get("meta", {})
+        sections = {k: {"date": m.get("date"), "load_before": m.get("load_before"), "load_after": m.get("load_after"),
+                        "command": m.get("command")} for k in prev if k != "meta"}
+    cmd = "python benchmarks/render.py " + " ".join(argv if argv is not None else sys.argv[1:])
+
+    def mark(key, t_load):
+        sections[key] = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "load_before": t_load,
+                         "load_after": tuple(round(x, 2) for x in os.getloadavg()), "command": cmd}
+
+    def now_load():
+        return tuple(round(x, 2) for x in os.getloadavg())
+    if old is None or not a.old_for:
+        old_for = set()
+    else:
+        old_for = set(a.old_for)
 
     def say(msg):
         print(f"[{time.strftime('%H:%M:%S')} load {os.getloadavg()[0]:.1f}] {msg}", flush=True)
     if "overhead" not in a.skip:
+        l0 = now_load()
         res["overhead"] = []
         for sc in a.scenes:
             for sets, n, spp in (([], a.frames, a.spp), (full, a.full_frames, a.full_spp)):
@@ -346,10 +382,12 @@ def main(argv=None):
                 res["overhead"].append(r)
                 say(f"overhead {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
                     f"{r['overhead_ratio']:.3f}")
+        mark("overhead", l0)
     if "keyframes" not in a.skip:
         for key, tree in (("keyframes", None), ("keyframes_old", old)):
-            if key == "keyframes_old" and old is None:
+            if key == "keyframes_old" and "keyframes" not in old_for:
                 continue
+            l0 = now_load()
             res[key] = []
             for sc in a.scenes:
                 # every lux on the rotating disk (the wait needs them); the dimmest and brightest elsewhere
@@ -358,21 +396,28 @@ def main(argv=None):
                     r = _run("keyframes", {"scene": sc, "spp": a.kf_spp, "lux": lux, "duration_s": clip}, tree)
                     res[key].append(r)
                     say(f"{key} {sc} {lux:g} lux: {r['keyframes_per_camera_s']:.0f} keyframes/s")
-    if "noise" not in a.skip or "wait" not in a.skip:
+            mark(key, l0)
+    for key in ("keyframes", "keyframes_old"):  # the wait section needs them: from the earlier run if skipped
+        if key not in res and key in prev:
+            res[key] = prev[key]
+    if "noise" not in a.skip:
         for key, tree in (("noise", None), ("noise_old", old)):
-            if key == "noise_old" and old is None:
+            if key == "noise_old" and "noise" not in old_for:
                 continue
+            l0 = now_load()
             res[key] = []
             for lux in a.lux:
                 r = _run("noise", {"scene": "rotating_disk", "lux": lux, "ratio_times": [0.013, 0.051, 0.087]}, tree)
                 res[key].append(r)
                 say(f"{key} {lux:g} lux: spp {r['spp']}, ratio {r['measured_ratios']}")
+            mark(key, l0)
     if "wait" not in a.skip:
+        l0 = now_load()
         res["wait"] = []
         kf = {(r["lux"], v): r["keyframes_per_camera_s"] for k, v in (("keyframes", "new"), ("keyframes_old", "old"))
               for r in res.get(k, []) if r["scene"] == "rotating_disk"}
         for version, tree in (("new", None), ("old", old)):
-            if version == "old" and old is None:
+            if version == "old" and "wait" not in old_for:
                 continue
             for lux in a.lux:
                 r = _run("noise", {"scene": "rotating_disk", "lux": lux, "sets": full, "wait_frames": a.wait_frames},
@@ -387,16 +432,20 @@ def main(argv=None):
         by = {(r["version"], r["lux"]): r["wait_s"] for r in res["wait"]}
         res["wait_speedup"] = {f"{lux:g}": by[("old", lux)] / by[("new", lux)] for lux in a.lux
                                if ("old", lux) in by and ("new", lux) in by}
+        mark("wait", l0)
+    for key, val in prev.items():  # --merge: what was not measured now
+        if key != "meta" and key not in res:
+            res[key] = val
     cpu = ""
     try:
         cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
     except (OSError, StopIteration):
         pass
-    meta = {"command": "python benchmarks/render.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    meta = {"command": cmd, "sections": sections,
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "cpu": cpu, "cores": len(os.sched_getaffinity(0)),
             "load_before": load_before, "load_after": tuple(round(x, 2) for x in os.getloadavg()),
             "old": str(old) if old else None, "wait_frames": a.wait_frames,
-            "variant": (res.get("overhead") or [{}])[0].get("variant")}
+            "variant": (res.get("overhead") or [{}])[0].get("variant") or prev.get("meta", {}).get("variant")}
     path = write_report(res, meta, Path(a.out))
     print(f"wrote {path} and {path.with_suffix('.json')}")
     return 0
