@@ -276,12 +276,13 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "every 32nd frame: 1 extra launch in 32 frames); 'without verification' takes one bare frame per "
               "verification launch out. 'per block': each pipeline block over its neighbouring bare block.", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
-              "| without verification | per block |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "| without verification | per block | load before-after |", "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
             L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
                      f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
                      f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
-                     + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " |")
+                     + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " | "
+                     + (f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}" if r.get("load_before") else "") + " |")
         L.append("")
     if res.get("keyframes"):
         L += ["## Keyframes per camera-second (window, budget spp, shortened clip)", ""] + when("keyframes", "keyframes_old") + [
@@ -326,6 +327,8 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=16, help="fixed spp of sections 1-2 (default 16)")
     ap.add_argument("--frames", type=int, default=32, help="frames per overhead run at the window (default 32)")
     ap.add_argument("--full-frames", type=int, default=32, help="frames per overhead run at full res (default 32)")
+    ap.add_argument("--sizes", nargs="+", default=["window", "full"], choices=["window", "full"],
+                    help="overhead at the scene's window and/or the full sensor (default both)")
     ap.add_argument("--rounds", type=int, default=2, help="P B B P rounds per overhead point (default 2)")
     ap.add_argument("--full-spp", type=int, default=4, help="spp of the full-resolution overhead runs (default 4)")
     ap.add_argument("--clip", type=float, default=0.02, help="camera seconds of the keyframe runs (default 0.02)")
@@ -339,10 +342,16 @@ def main(argv=None):
                          "--out; each section records when and under which load it was measured")
     ap.add_argument("--quick", action="store_true", help="smoke run: rotating disk, few frames, 50 lux")
     ap.add_argument("--out", default=str(HERE / "results"))
+    ap.add_argument("--report-only", action="store_true", help="rewrite render.md from render.json in --out")
     ap.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.one:
         print(json.dumps(MEASURES[a.one[0]](json.loads(a.one[1]))))
+        return 0
+    if a.report_only:  # rewrite render.md from render.json (e.g. after a change of the report's layout)
+        d = json.loads((Path(a.out) / "render.json").read_text())
+        meta = d.pop("meta")
+        print(f"wrote {write_report(d, meta, Path(a.out))}")
         return 0
     if a.quick:
         a.scenes, a.lux, a.frames, a.full_frames, a.clip, a.wait_frames = ["rotating_disk"], [50.0], 6, 2, 0.01, 1
@@ -377,12 +386,21 @@ def main(argv=None):
         l0 = now_load()
         res["overhead"] = []
         for sc in a.scenes:
-            for sets, n, spp in (([], a.frames, a.spp), (full, a.full_frames, a.full_spp)):
+            for size, sets, n, spp in (("window", [], a.frames, a.spp), ("full", full, a.full_frames, a.full_spp)):
+                if size not in a.sizes:
+                    continue
+                lb = now_load()
                 r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets, "rounds": a.rounds})
+                r.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), load_before=lb, load_after=now_load())
                 res["overhead"].append(r)
                 say(f"overhead {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
                     f"{r['overhead_ratio']:.3f}")
         mark("overhead", l0)
+        if prev.get("overhead"):  # --merge: rows (scene, resolution) not measured now are kept
+            have = {(r["scene"], r["resolution"]) for r in res["overhead"]}
+            rows = res["overhead"] + [r for r in prev["overhead"] if (r["scene"], r["resolution"]) not in have]
+            order = {sc: i for i, sc in enumerate(SCENES)}
+            res["overhead"] = sorted(rows, key=lambda r: (order.get(r["scene"], 99), r["resolution"] == "250x400"))
     if "keyframes" not in a.skip:
         for key, tree in (("keyframes", None), ("keyframes_old", old)):
             if key == "keyframes_old" and "keyframes" not in old_for:
