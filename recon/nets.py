@@ -480,26 +480,30 @@ def crossing_light(rate, mu) -> "torch.Tensor":
 class BankHead(nn.Module):
     """Output head: per-pixel softmax weights over the network's image and a bank of classic estimates.
 
-    ``forward(candidates, level)``: ``candidates`` (B, K, H, W) in the
+    ``forward(candidates, level, rate)``: ``candidates`` (B, K, H, W) in the
     network's scaled units (the network's output first, then
-    :func:`classic_bank`), ``level`` (B, 1, H, W) the log mean count. A CNN
+    :func:`classic_bank`), ``level`` (B, 1, H, W) the log mean count,
+    ``rate`` (B, 1, H, W) each pixel's raw TFP [spikes per interval] (near 1:
+    read-out saturation, where the classic estimates clip). A CNN
     (three 3x3 convolutions, LeakyReLU) maps them to K weights per pixel
     (softmax); returns the weighted sum (B, 1, H, W) and the weights. The last
-    convolution starts at zero (equal weights).
+    convolution starts at zero (equal weights). Also returns the logits
+    (for the routing term of :func:`rsir_loss`).
     """
 
     def __init__(self, n_candidates: int, width: int = 16):
         super().__init__()
-        self.net = nn.Sequential(nn.Conv2d(n_candidates + 1, width, 3, padding=1), nn.LeakyReLU(0.1),
+        self.net = nn.Sequential(nn.Conv2d(n_candidates + 2, width, 3, padding=1), nn.LeakyReLU(0.1),
                                  nn.Conv2d(width, width, 3, padding=1), nn.LeakyReLU(0.1),
                                  nn.Conv2d(width, n_candidates, 3, padding=1))
         nn.init.zeros_(self.net[-1].weight)
         nn.init.zeros_(self.net[-1].bias)
 
-    def forward(self, candidates, level):
+    def forward(self, candidates, level, rate):
         _check_4d(candidates, "candidates")
-        wts = torch.softmax(self.net(torch.cat([candidates, level], dim=1)), dim=1)
-        return (wts * candidates).sum(dim=1, keepdim=True), wts
+        logits = self.net(torch.cat([candidates, level, rate], dim=1))
+        wts = torch.softmax(logits, dim=1)
+        return (wts * candidates).sum(dim=1, keepdim=True), wts, logits
 
 
 # ------------------------------------------------------------------------------------------------ the network
@@ -559,7 +563,8 @@ class RSIRConfig:
     the classic estimates it sees, and it can smooth flat regions and keep
     edges (an adaptive filter) where the fixed-width classic baseline must
     choose one width per image (see docs/recon.md, "The output head").
-    ``head_width`` channels in its CNN.
+    ``head_width`` channels in its CNN; ``head_route_weight`` weighs its
+    routing term in the loss (:func:`head_routing_loss`).
     """
 
     n_windows: int = 10
@@ -587,6 +592,7 @@ class RSIRConfig:
     head: bool = False
     head_sigmas: tuple = (0.0, 0.75, 1.5, 3.0, 6.0)
     head_width: int = 16
+    head_route_weight: float = 0.02
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -740,8 +746,9 @@ class RSIRNet(nn.Module):
             bank = classic_bank(windows, maps, self.config.head_sigmas)
             cands = torch.cat([out["output"], bank], dim=1)
             level = self.level(windows).expand(-1, 1, *windows.shape[-2:])
-            y, wts = self.head(cands * s, level)
-            out["head"], out["head_weights"] = y / s, wts
+            y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True))
+            out["head"], out["head_weights"], out["head_logits"] = y / s, wts, logits
+            out["head_candidates"] = cands
             out["output"] = out["head"]
         return out
 
@@ -788,13 +795,29 @@ class RSIRNet(nn.Module):
         return self.forward(windows, maps)["output"]
 
 
+def head_routing_loss(logits, candidates, y, sigma: float = 2.0):
+    """Cross-entropy of the head's per-pixel weights against the locally best candidate.
+
+    ``candidates`` (B, K, H, W) and ``y`` (B, 1, H, W) in the same units;
+    the best candidate of a pixel is the one with the least absolute error
+    averaged by a Gaussian of ``sigma`` pixels around it (a single pixel's
+    error is mostly noise). The L1 term alone lets the softmax settle on the
+    candidate that wins on average and then starves the others of gradient
+    (their weights go to ~1e-7); this term keeps every candidate's gradient
+    alive where it is the better one (e.g. the unsmoothed estimate in bright
+    light).
+    """
+    err = gaussian_blur((candidates - y).abs().detach(), sigma)
+    return F.cross_entropy(logits, err.argmin(dim=1))
+
+
 def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
     """Loss on every step (L1, in the network's scaled units), averaged over the steps.
 
     Per step: |refine - y| + |fusion - y| + |denoise - y| + sum over the four
     Haar bands of |denoise_band - y_band| + nim_loss_weight * |nim - y|,
     each a mean over pixels; with an output head, plus |head - y| (the final
-    image). ``head_only``: the head's term alone (training the head on a fixed
+    image) and ``head_route_weight`` x :func:`head_routing_loss`. ``head_only``: the head's term alone (training the head on a fixed
     network). Returns (loss, dict of the mean components).
     """
     _check_4d(target, "target", channels=1)
@@ -814,7 +837,10 @@ def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
     parts = {k: float(v.detach() if hasattr(v, "detach") else v) / n for k, v in parts.items()}
     if "head" in out:
         head = F.l1_loss(out["head"] * s, y)
+        route = head_routing_loss(out["head_logits"], out["head_candidates"] * s, y)
         parts["head"] = float(head.detach())
+        parts["route"] = float(route.detach())
+        head = head + model.config.head_route_weight * route
         total = head if head_only else total + head
     elif head_only:
         raise InputError("head_only needs a network with an output head (config.head)", field="head")

@@ -31,7 +31,7 @@ import numpy as np
 from sensor.errors import InputError
 from sensor.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
 
-LOSS_FIELDS = ["step", "epoch", "loss", "refine", "fusion", "denoise", "bands", "nim", "head", "lr", "elapsed_s"]
+LOSS_FIELDS = ["step", "epoch", "loss", "refine", "fusion", "denoise", "bands", "nim", "head", "route", "lr", "elapsed_s"]
 
 
 @dataclass

@@ -84,12 +84,12 @@ def test_classic_bank_width_zero_is_the_linearised_tfp_and_leaves_hot_pixels_out
 def test_head_starts_at_equal_weights_and_outputs_a_convex_combination():
     head = BankHead(4, width=8)
     c = torch.rand(2, 4, 8, 8)
-    y, w = head(c, torch.zeros(2, 1, 8, 8))
+    y, w, _ = head(c, torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8))
     torch.testing.assert_close(w, torch.full_like(w, 0.25))
     torch.testing.assert_close(y, c.mean(dim=1, keepdim=True))
     with torch.no_grad():
         head.net[-1].bias.copy_(torch.tensor([5.0, -5.0, 0.0, 1.0]))
-    y, w = head(c, torch.zeros(2, 1, 8, 8))
+    y, w, _ = head(c, torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8))
     assert torch.all(y <= c.max(dim=1, keepdim=True).values + 1e-6)
     assert torch.all(y >= c.min(dim=1, keepdim=True).values - 1e-6)
 
