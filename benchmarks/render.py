@@ -269,8 +269,12 @@ def write_report(res, meta, out_dir: Path) -> Path:
                            f"{list(m.get('load_before') or [])} / {list(m.get('load_after') or [])}.")
         return [" ".join(out), ""] if out else []
     if res.get("overhead"):
-        L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", ""] + when("overhead") + [
-              "Blocks of frames in the order pipeline, bare, bare, pipeline (twice by default); the pipeline "
+        dates = sorted(r["date"] for r in res["overhead"] if r.get("date"))
+        intro = when("overhead") if not dates else [
+            f"Rows measured {dates[0]} to {dates[-1]} (each row's 1-minute load average before-after in the last "
+            "column; rows are re-measured one by one with `--merge --scenes ... --sizes ...`).", ""]
+        L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", ""] + intro + [
+              "Blocks of frames in the order pipeline, bare, bare, pipeline (`--rounds` times, 2 by default; the row's blocks are in 'per block'); the pipeline "
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
               "background writer, journal, manifest). It includes the noise verification launches (the first and "
               "every 32nd frame: 1 extra launch in 32 frames); 'without verification' takes one bare frame per "

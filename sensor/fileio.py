@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import errno
+import functools
 import json
 import os
 import platform
@@ -114,8 +115,12 @@ def _json_default(o):
     raise TypeError(f"cannot serialise {type(o).__name__} to JSON")
 
 
+@functools.lru_cache(maxsize=1)
 def package_version() -> str:
-    """The installed render2spike distribution version ("unknown" when run from a bare checkout)."""
+    """The installed render2spike distribution version ("unknown" when run from a bare checkout).
+
+    Cached: the metadata lookup costs a few ms, and every written file's provenance asks for it.
+    """
     from importlib import metadata
     try:
         return metadata.version("render2spike")
