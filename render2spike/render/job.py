@@ -15,7 +15,10 @@ Resume and reproducibility
 (``calibration``: the irradiance meter's reading behind ``illuminance_lux``) and
 the samples per pixel, written once when the render starts; each finished frame
 appends one line to ``OUT/render_journal.jsonl`` (so a long render does not
-rewrite a growing file per frame). Rerunning the same command keeps the
+rewrite a growing file per frame). Frames and their journal lines are written
+by a background thread while the next frame renders (:mod:`.writer`): a line is
+appended only once its frame file is in place, and the writer's errors are
+raised here. Rerunning the same command keeps the
 finished frames, reuses the stored measurement and spp, and renders only the
 rest: a resumed folder holds exactly the frames an uninterrupted render makes.
 The measurement itself is deterministic (see
