@@ -486,24 +486,29 @@ class BankHead(nn.Module):
     ``rate`` (B, 1, H, W) each pixel's raw TFP [spikes per interval] (near 1:
     read-out saturation, where the classic estimates clip). A CNN
     (three 3x3 convolutions, LeakyReLU) maps them to K weights per pixel
-    (softmax); returns the weighted sum (B, 1, H, W) and the weights. The last
-    convolution starts at zero (equal weights). Also returns the logits
-    (for the routing term of :func:`rsir_loss`).
+    (softmax) and one additive correction (scaled units); returns the weighted
+    sum plus the correction (B, 1, H, W), the weights and their logits (for
+    the routing term of :func:`rsir_loss`). The last convolution starts at
+    zero (equal weights, no correction). The correction lets the output leave
+    the candidates' range where all of them are biased the same way, as above
+    read-out saturation (about one spike per interval), where every estimate
+    clips at 1 and the light is higher.
     """
 
     def __init__(self, n_candidates: int, width: int = 16):
         super().__init__()
         self.net = nn.Sequential(nn.Conv2d(n_candidates + 2, width, 3, padding=1), nn.LeakyReLU(0.1),
                                  nn.Conv2d(width, width, 3, padding=1), nn.LeakyReLU(0.1),
-                                 nn.Conv2d(width, n_candidates, 3, padding=1))
+                                 nn.Conv2d(width, n_candidates + 1, 3, padding=1))
         nn.init.zeros_(self.net[-1].weight)
         nn.init.zeros_(self.net[-1].bias)
 
     def forward(self, candidates, level, rate):
         _check_4d(candidates, "candidates")
-        logits = self.net(torch.cat([candidates, level, rate], dim=1))
+        z = self.net(torch.cat([candidates, level, rate], dim=1))
+        logits, correction = z[:, :-1], z[:, -1:]
         wts = torch.softmax(logits, dim=1)
-        return (wts * candidates).sum(dim=1, keepdim=True), wts, logits
+        return (wts * candidates).sum(dim=1, keepdim=True) + correction, wts, logits
 
 
 # ------------------------------------------------------------------------------------------------ the network

@@ -81,17 +81,22 @@ def test_classic_bank_width_zero_is_the_linearised_tfp_and_leaves_hot_pixels_out
     torch.testing.assert_close(flat[:, 1], flat[:, 0])
 
 
-def test_head_starts_at_equal_weights_and_outputs_a_convex_combination():
+def test_head_starts_at_equal_weights_and_outputs_a_convex_combination_plus_its_correction():
     head = BankHead(4, width=8)
     c = torch.rand(2, 4, 8, 8)
     y, w, _ = head(c, torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8))
     torch.testing.assert_close(w, torch.full_like(w, 0.25))
     torch.testing.assert_close(y, c.mean(dim=1, keepdim=True))
-    with torch.no_grad():
-        head.net[-1].bias.copy_(torch.tensor([5.0, -5.0, 0.0, 1.0]))
+    with torch.no_grad():  # weights only: a convex combination of the candidates
+        head.net[-1].bias.copy_(torch.tensor([5.0, -5.0, 0.0, 1.0, 0.0]))
     y, w, _ = head(c, torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8))
     assert torch.all(y <= c.max(dim=1, keepdim=True).values + 1e-6)
     assert torch.all(y >= c.min(dim=1, keepdim=True).values - 1e-6)
+    with torch.no_grad():  # the correction channel adds to it
+        head.net[-1].bias[-1] = 0.5
+    y2, w2, _ = head(c, torch.zeros(2, 1, 8, 8), torch.zeros(2, 1, 8, 8))
+    torch.testing.assert_close(w2, w)
+    torch.testing.assert_close(y2, y + 0.5)
 
 
 def test_network_with_head_keeps_the_trunk_and_head_only_training_changes_only_the_head(tmp_path):
