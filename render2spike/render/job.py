@@ -147,9 +147,12 @@ def settings_of(scene: Scene, variant: str) -> dict:
     """Everything besides the scene data that changes the frames (part of the hash)."""
     # variant_family keeps GPU (cuda) and CPU (llvm/scalar) frames apart; procedure 2: exact spp in one
     # launch per frame, fitted noise budget, curvature-based keyframes (frames of procedure 1 are not resumed);
-    # frames_format 2: frames named by tick, light level stored in the render state
+    # frames_format 2: frames named by tick, light level stored in the render state; procedure 3 (auto spp
+    # only): the budget's answer snapped on measured pairs (noise.snap_to_measured), which can choose another
+    # spp than procedure 2 did, so a folder of the older budget is not taken for this one's output
+    auto = scene.render.get("spp") == "auto"
     return {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
-            "procedure": 2}
+            "procedure": 3 if auto else 2}
 
 
 def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
@@ -229,7 +232,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
 
     # ---- noise budget: pilot pairs at t = 0, convergence fitted (noise.pilot_budget) -----------
     K = keyframes_per_window(W, scene.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
-    budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale)
+    budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale, snap=rcfg["spp"] == "auto")
     if "spp" in state and "noise_budget" in state:  # resuming: the frames already made fix the spp
         budget = state["noise_budget"]
         spp = int(state["spp"])

@@ -270,12 +270,14 @@ def snap_to_measured(spp: int, measure, ratio_of, target_ratio: float, min_spp: 
     return s, seen
 
 
-def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float):
+def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float, snap: bool = True):
     """Pilot renders at t = 0 -> (budget dict, per-pixel variance function ``v_px(spp)`` in Phi units^2).
 
     ``rnd`` is a :class:`~.renderer.SceneRenderer`. Levels ``n1 = pilot_spp``, ``4 n1`` and, if the
     two-level answer exceeds ``4 n1``, ``16 n1`` (rounded up to exact sampler counts), each an
-    independent pair of renders with seeds derived from the scene seed.
+    independent pair of renders with seeds derived from the scene seed. ``snap``: check the answer on
+    the sampler's own counts (:func:`snap_to_measured`); off when the spp is fixed by the user (the
+    budget is then only a record, and the snapping's pairs would be spent for nothing).
     """
     from .photometry import to_physical
     rcfg = scene.render
@@ -316,7 +318,7 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
         level(3, budget["spp"])
     model = Measured(levels, var_means) if len(levels) > 1 else fit_convergence(levels, var_means)
     budget = choose_spp_fit(rate(), model, *args)
-    if not budget["clipped"] and not budget["at_min_spp"]:
+    if snap and not budget["clipped"] and not budget["at_min_spp"]:
         # the answer and its neighbours measured: multijitter's variance is not monotone in the count
         r_mean = float(np.mean(rate()))
         ratio_of = lambda v: math.sqrt(window_intervals * v / (k_frames * r_mean))  # noqa: E731
