@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 import zipfile
 import zlib
@@ -211,8 +212,11 @@ class RateSource:
     def _read(self, profile, i: int, j: int) -> np.ndarray:
         from sensor import photoelectron_rate
         if self.kind == "frames":
-            return np.stack([photoelectron_rate(self.frames.read(q).phi, profile) for q in range(i, j)]).astype(
-                np.float32, copy=False)
+            # only the Phi channel is read (the E channel is not needed here); one conversion per chunk
+            phi = np.empty((j - i,) + self.shape, np.float32)
+            for q in range(i, j):
+                phi[q - i] = self.frames.read_phi(q)  # checked: finite, >= 0, size and time as in frames.json
+            return photoelectron_rate(phi, profile, out=phi)
         from sensor.errors import InputError
         from sensor.rates import check_rates
         try:
@@ -227,22 +231,35 @@ class RateSource:
         return rate
 
     def chunks(self, profile, size: int, prefetch: bool = True):
-        """Yield (rate_e, t_s) chunks of ``size`` rows; the next chunk is read in a thread meanwhile."""
+        """Iterator of (rate_e, t_s) chunks of ``size`` rows; with ``prefetch`` a reader thread reads the
+        next chunk meanwhile, and starts on the first one at once (before the first ``next``).
+
+        Each chunk is a fresh array, checked (finite, >= 0; errors name the file and row) and never
+        touched again by this source: the consumer may keep it (``iter_feed_packed(owned=True)``).
+        """
         bounds = [(i, min(self.n, i + size)) for i in range(0, self.n, size)]
+        if not prefetch or len(bounds) < 2:
+            return self._chunks_plain(profile, bounds)
+        from concurrent.futures import ThreadPoolExecutor
+        ex = ThreadPoolExecutor(1, thread_name_prefix="r2s-read")
+        return self._chunks_prefetched(profile, bounds, ex, ex.submit(self._read, profile, *bounds[0]))
+
+    def _chunks_plain(self, profile, bounds):
         try:
-            if not prefetch or len(bounds) < 2:
-                for i, j in bounds:
-                    yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
-                return
-            from concurrent.futures import ThreadPoolExecutor
-            with ThreadPoolExecutor(1, thread_name_prefix="r2s-read") as ex:
-                fut = ex.submit(self._read, profile, *bounds[0])
-                for k, (i, j) in enumerate(bounds):
-                    rate = fut.result()
-                    fut = ex.submit(self._read, profile, *bounds[k + 1]) if k + 1 < len(bounds) else None
-                    yield rate, (None if self.t_s is None else self.t_s[i:j])
-                    del rate
+            for i, j in bounds:
+                yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
         finally:
+            self.close()
+
+    def _chunks_prefetched(self, profile, bounds, ex, fut):
+        try:
+            for k, (i, j) in enumerate(bounds):
+                rate = fut.result()
+                fut = ex.submit(self._read, profile, *bounds[k + 1]) if k + 1 < len(bounds) else None
+                yield rate, (None if self.t_s is None else self.t_s[i:j])
+                del rate
+        finally:
+            ex.shutdown(wait=True, cancel_futures=True)
             self.close()
 
     def close(self):
@@ -254,14 +271,56 @@ class RateSource:
 def run(args) -> int:
     from tqdm import tqdm
 
-    from sensor import SensorProfile, SpikeSimulator
     from sensor.spikefile import SpikeWriter
-
-    from render2spike.commands._common import check_output
-    from sensor.errors import InputError
 
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else print
+    with _start_up():
+        src, profile, sim, chunks = _prepare(args, say)
+    desc = sim.describe()
+    extra = {"input_kind": src.kind, "simulator": desc}
+    total = src.n_intervals(profile.interval_s)
+    with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,
+                     seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
+                     extra=extra, background=True) as writer, \
+            tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
+        for rate, t in chunks:
+            # the reader checked the rates (naming file and row) and hands each fresh chunk over
+            for bits in sim.iter_feed_packed(rate, t, checked=True, owned=True):  # 1 bit per pixel-interval
+                writer.write_packed(bits, profile.shape)  # counted, re-ordered and written by a writer thread
+                bar.update(bits.shape[0])
+        last = sim.finish_packed()
+        writer.write_packed(last, profile.shape)
+        bar.update(last.shape[0])
+    dt = time.perf_counter() - t0
+    n = writer.n_intervals
+    rate_hz = writer.n_spikes / max(n * profile.height * profile.width, 1) / profile.interval_s
+    say(f"wrote {args.out}: {n} intervals ({n * profile.interval_s:.4f} s of camera time), {profile.height}x"
+        f"{profile.width}, model {args.model} ({sim.implementation}), seed {args.seed}; mean spike rate "
+        f"{rate_hz:.1f} Hz per pixel; {dt:.1f} s wall")
+    return 0
+
+
+@contextlib.contextmanager
+def _start_up():
+    """No cyclic garbage collection while the command starts: imports and numba's cache load make
+    only long-lived objects, and the collector's passes over them cost ~0.15 s of start-up."""
+    import gc
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+def _prepare(args, say):
+    """Open INPUT and the profile, make the simulator, start reading, load the kernels."""
+    from sensor import SensorProfile, SpikeSimulator
+    from sensor.errors import InputError
+
+    from render2spike.commands._common import check_output
     check_output(args.out, inputs=[args.input], overwrite=args.overwrite, say=say)
     src = RateSource(args.input)
     profile = fit_profile(SensorProfile.load(args.profile), src.shape, say)
@@ -280,28 +339,11 @@ def run(args) -> int:
         raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
                          "(need at least two keyframes one interval apart)", path=args.input,
                          field="frames" if src.kind == "frames" else "t_s")
-    desc = sim.describe()
-    extra = {"input_kind": src.kind, "simulator": desc}
-    with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,
-                     seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
-                     extra=extra) as writer, \
-            tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
-        size = max(1, args.chunk)
-        if src.per_interval:
-            # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
-            # whole blocks (aligned): the schedule then takes views of them and never copies rows
-            size = sim.block * -(-size // sim.block)
-        for rate, t in src.chunks(profile, size):
-            for bits in sim.iter_feed_packed(rate, t):  # bit-packed blocks: 1 bit per pixel-interval
-                writer.write_packed(bits, profile.shape)
-                bar.update(bits.shape[0])
-        last = sim.finish_packed()
-        writer.write_packed(last, profile.shape)
-        bar.update(last.shape[0])
-    dt = time.perf_counter() - t0
-    n = writer.n_intervals
-    rate_hz = writer.n_spikes / max(n * profile.height * profile.width, 1) / profile.interval_s
-    say(f"wrote {args.out}: {n} intervals ({n * profile.interval_s:.4f} s of camera time), {profile.height}x"
-        f"{profile.width}, model {args.model} ({sim.implementation}), seed {args.seed}; mean spike rate "
-        f"{rate_hz:.1f} Hz per pixel; {dt:.1f} s wall")
-    return 0
+    size = max(1, args.chunk)
+    if src.per_interval:
+        # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
+        # whole blocks (aligned): the schedule then takes views of them and never copies rows
+        size = sim.block * -(-size // sim.block)
+    chunks = src.chunks(profile, size)  # the reader thread starts on the first chunk now ...
+    sim.warm_up()  # ... while numba loads the kernels from its cache here
+    return src, profile, sim, chunks
