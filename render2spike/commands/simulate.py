@@ -124,10 +124,11 @@ class _NpzMember:
 class RateSource:
     """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT.
 
-    Nothing is read whole: an ``.npy`` is read in row chunks at its data offset, an ``.npz`` member is decoded
-    chunk by chunk from the zip stream, and a frames folder's EXR files are decoded by a
-    reader thread one chunk ahead of the simulation (:meth:`chunks`), so decoding overlaps
-    the kernel (which releases the GIL). Memory is a few chunks, flat in duration.
+    Nothing is read whole: an ``.npy`` is memory-mapped and handed out in row chunks whose pages are
+    dropped again once used, an ``.npz`` member is decoded chunk by chunk from the zip stream, and a
+    frames folder's EXR files are read (the Phi channel only). A reader thread reads and checks the
+    next chunk while the kernel (which releases the GIL) simulates the current one (:meth:`chunks`).
+    Memory is a few chunks, flat in duration.
     """
 
     def __init__(self, path, profile_for_phi=None):
@@ -135,6 +136,7 @@ class RateSource:
         self.path = Path(path)
         self.kind = None
         self._member = None
+        self._mm = None
         self.rate = None
         if self.path.is_dir():
             from sensor.frames import read_frames
@@ -192,22 +194,47 @@ class RateSource:
             return self.n
         return n_intervals_spanned(self.t_s[0], self.t_s[-1], interval_s)
 
-    def _npy_rows(self, i: int, j: int) -> np.ndarray:
-        """Rows [i, j) of the .npy by plain file reads at the map's data offset (float32).
+    def _npy_map(self):
+        """A read-only memory map of the whole .npy file (made on first use)."""
+        if self._mm is None:
+            import mmap
+            with open(self.path, "rb") as fh:
+                self._mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+            if hasattr(self._mm, "madvise") and hasattr(mmap, "MADV_SEQUENTIAL"):
+                self._mm.madvise(mmap.MADV_SEQUENTIAL)  # read ahead: the rows are read once, in order
+        return self._mm
 
-        Private memory of one chunk, and no file-backed pages left mapped (reading through
-        the map would keep every page read in the process's resident set).
+    def _npy_offset(self, i: int) -> int:
+        """File offset [bytes] of row ``i`` of the .npy."""
+        m = self.rate
+        return m.offset + i * int(np.prod(m.shape[1:], dtype=np.int64)) * m.dtype.itemsize
+
+    def _npy_rows(self, i: int, j: int) -> np.ndarray:
+        """Rows [i, j) of the .npy as float32 (j - i, H, W).
+
+        A float32 C-ordered file is not copied: the rows are a view of its read-only memory map,
+        whose pages come straight from the page cache (several times faster than reading into
+        fresh memory, which must be faulted in and zeroed first), and :meth:`_release` drops them
+        from the process again once used, so the resident set stays at a few chunks whatever the
+        file's length. Other dtypes are converted (a copy of the chunk).
         """
         m = self.rate
         if not m.flags.c_contiguous:  # Fortran order: rows are not contiguous in the file
             return np.array(m[i:j], dtype=np.float32)
         row = int(np.prod(m.shape[1:], dtype=np.int64))
-        with open(self.path, "rb") as fh:
-            fh.seek(m.offset + i * row * m.dtype.itemsize)
-            out = np.fromfile(fh, dtype=m.dtype, count=(j - i) * row)
-        if out.size != (j - i) * row:
-            raise ValueError(f"truncated .npy: rows {i}..{j - 1} of {m.shape[0]}")
+        out = np.frombuffer(self._npy_map(), dtype=m.dtype, count=(j - i) * row, offset=self._npy_offset(i))
         return out.reshape((j - i,) + tuple(m.shape[1:])).astype(np.float32, copy=False)
+
+    def _release(self, i: int, j: int) -> None:
+        """Rows [i, j) are used: drop their pages from this process (.npy only). The data stays in the
+        file: a row still referenced is read again from the page cache if touched, unchanged."""
+        import mmap
+        if self._mm is None or not hasattr(mmap, "MADV_DONTNEED") or not hasattr(self._mm, "madvise"):
+            return
+        a = self._npy_offset(i) // mmap.PAGESIZE * mmap.PAGESIZE
+        b = len(self._mm) if j >= self.n else self._npy_offset(j) // mmap.PAGESIZE * mmap.PAGESIZE
+        if b > a:
+            self._mm.madvise(mmap.MADV_DONTNEED, a, b - a)
 
     def _read(self, profile, i: int, j: int) -> np.ndarray:
         from sensor import photoelectron_rate
@@ -234,8 +261,11 @@ class RateSource:
         """Iterator of (rate_e, t_s) chunks of ``size`` rows; with ``prefetch`` a reader thread reads the
         next chunk meanwhile, and starts on the first one at once (before the first ``next``).
 
-        Each chunk is a fresh array, checked (finite, >= 0; errors name the file and row) and never
-        touched again by this source: the consumer may keep it (``iter_feed_packed(owned=True)``).
+        Each chunk is checked (finite, >= 0; errors name the file and row) and never modified by this
+        source: a fresh array, or for a float32 .npy a view of the file's read-only memory map, whose
+        pages are dropped from the process once the consumer asks for the next chunk (they are read
+        again from the page cache if still touched). The consumer may keep a chunk
+        (``iter_feed_packed(owned=True)``).
         """
         bounds = [(i, min(self.n, i + size)) for i in range(0, self.n, size)]
         if not prefetch or len(bounds) < 2:
@@ -248,6 +278,7 @@ class RateSource:
         try:
             for i, j in bounds:
                 yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
+                self._release(i, j)
         finally:
             self.close()
 
@@ -258,6 +289,7 @@ class RateSource:
                 fut = ex.submit(self._read, profile, *bounds[k + 1]) if k + 1 < len(bounds) else None
                 yield rate, (None if self.t_s is None else self.t_s[i:j])
                 del rate
+                self._release(i, j)
         finally:
             ex.shutdown(wait=True, cancel_futures=True)
             self.close()
@@ -266,6 +298,12 @@ class RateSource:
         if self._member is not None:
             self._member.close()
             self._member = None
+        if self._mm is not None:
+            try:
+                self._mm.close()
+            except BufferError:  # rows still referenced by the caller: the map closes with the last of them
+                pass
+            self._mm = None
 
 
 def run(args) -> int:
