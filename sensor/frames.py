@@ -158,9 +158,10 @@ _EXR_PIXEL_TYPES = {0: "<u4", 1: "<f2", 2: "<f4"}  # UINT, HALF, FLOAT
 
 
 def _exr_channel_fast(data: bytes, name: str):
-    """(time_s or None, channel ``name`` as float32 (H, W)) of an uncompressed single-part scanline EXR held in
-    ``data``, decoded with numpy straight from the bytes; None for any other file (compressed, tiled, deep,
-    multi-part, subsampled, without that channel, damaged), which the caller then hands to OpenEXR.
+    """(time_s or None, channel ``name`` (H, W)) of an uncompressed single-part scanline EXR held in ``data``:
+    a read-only view of ``data`` (float32, float16 or uint32 as stored); None for any other file
+    (compressed, tiled, deep, multi-part, subsampled, without that channel, damaged), which the caller
+    then hands to OpenEXR.
 
     Layout (OpenEXR file format): magic, version, header attributes (name, type, size, value) up to an
     empty name, an offset table of one uint64 per scanline block, then per scanline ``y`` (int32), the
@@ -211,8 +212,7 @@ def _exr_channel_fast(data: bytes, name: str):
         head = np.ascontiguousarray(rows[:, :8]).view("<i4")
         if np.any(head[:, 0] != y0 + np.arange(H)) or np.any(head[:, 1] != line):
             return None
-        nb = W * dtype.itemsize
-        arr = np.ascontiguousarray(rows[:, 8 + offset:8 + offset + nb]).view(dtype).reshape(H, W)
+        arr = rows[:, 8 + offset:8 + offset + W * dtype.itemsize].view(dtype)  # (H, W), a view of ``data``
         time_s = None
         if b"time_s" in attrs:
             atype, at, size = attrs[b"time_s"]
@@ -220,18 +220,19 @@ def _exr_channel_fast(data: bytes, name: str):
                 (time_s,) = struct.unpack_from("<d", data, at)
             elif atype == b"float" and size == 4:
                 (time_s,) = struct.unpack_from("<f", data, at)
-        return time_s, arr.astype(np.float32, copy=False)
+        return time_s, arr
     except (KeyError, ValueError, IndexError, struct.error):
         return None
 
 
-def read_phi(path) -> tuple[float, np.ndarray]:
+def read_phi(path, out=None) -> tuple[float, np.ndarray]:
     """Only the ``Phi`` channel of a frame file: (time_s [s], Phi float32 (H, W) [e-/(s m^2)]).
 
     What the sensor stage needs of a frame. Uncompressed scanline files (as :func:`write_frame`
     writes them) are sliced straight from the file's bytes, which is ~15x faster than a full
     OpenEXR decode and leaves the ``E`` channel untouched; any other EXR goes through
-    :func:`read_frame` (same values, same errors).
+    :func:`read_frame` (same values, same errors). ``out``: a float32 (H, W) array to fill
+    (returned) when the frame has that shape, else a new array is returned.
     """
     path = Path(path)
     try:
@@ -241,8 +242,13 @@ def read_phi(path) -> tuple[float, np.ndarray]:
     fast = _exr_channel_fast(data, "Phi") if data else None
     if fast is None or fast[0] is None:
         fr = read_frame(path)
-        return fr.time_s, fr.phi
-    return float(fast[0]), fast[1]
+        time_s, phi = fr.time_s, fr.phi
+    else:
+        time_s, phi = float(fast[0]), fast[1]
+    if out is not None and out.shape == phi.shape:
+        np.copyto(out, phi)
+        return time_s, out
+    return time_s, np.array(phi, dtype=np.float32)
 
 
 @dataclass
@@ -275,11 +281,12 @@ class FrameSequence:
         check_light(fr.illuminance_lux, self.path(i), "E")
         return fr
 
-    def read_phi(self, i: int) -> np.ndarray:
+    def read_phi(self, i: int, out=None) -> np.ndarray:
         """Phi of frame ``i`` only, float32 (H, W) [e-/(s m^2)], with :meth:`read`'s checks of Phi
-        (size, timestamp, finite and non-negative); the ``E`` channel is not read (:func:`read_phi`)."""
+        (size, timestamp, finite and non-negative); the ``E`` channel is not read (:func:`read_phi`).
+        ``out``: a float32 (H, W) array to fill and return instead of a new one."""
         path = self.path(i)
-        time_s, phi = read_phi(path)
+        time_s, phi = read_phi(path, out)
         self._check(i, time_s, phi.shape)
         check_light(phi, path, "Phi")
         return phi

@@ -242,7 +242,7 @@ class RateSource:
             # only the Phi channel is read (the E channel is not needed here); one conversion per chunk
             phi = np.empty((j - i,) + self.shape, np.float32)
             for q in range(i, j):
-                phi[q - i] = self.frames.read_phi(q)  # checked: finite, >= 0, size and time as in frames.json
+                self.frames.read_phi(q, out=phi[q - i])  # checked: finite, >= 0, size and time as in frames.json
             return photoelectron_rate(phi, profile, out=phi)
         from sensor.errors import InputError
         from sensor.rates import check_rates
