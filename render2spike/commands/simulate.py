@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import time
 import zipfile
 import zlib
@@ -57,7 +58,8 @@ def register(sub) -> None:
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator instead of the fast event-driven one")
     p.add_argument("--chunk", type=int, default=32, metavar="K",
-                   help="keyframes read per step (memory bound; the result does not depend on it; default 32)")
+                   help="keyframes read per step; a reader thread keeps about two simulator blocks of them read "
+                        "ahead, at most 256 MB (memory bound; the result does not depend on it; default 32)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p)
     p.set_defaults(func=run)
@@ -257,9 +259,9 @@ class RateSource:
         check_rates(rate, path=self.path, offset=i)  # checked as it streams in: names the absolute index
         return rate
 
-    def chunks(self, profile, size: int, prefetch: bool = True):
-        """Iterator of (rate_e, t_s) chunks of ``size`` rows; with ``prefetch`` a reader thread reads the
-        next chunk meanwhile, and starts on the first one at once (before the first ``next``).
+    def chunks(self, profile, size: int, prefetch: int = 1):
+        """Iterator of (rate_e, t_s) chunks of ``size`` rows; with ``prefetch`` = n > 0 a reader thread keeps
+        the next n chunks read ahead, and starts on them at once (before the first ``next``).
 
         Each chunk is checked (finite, >= 0; errors name the file and row) and never modified by this
         source: a fresh array, or for a float32 .npy a view of the file's read-only memory map, whose
@@ -268,11 +270,14 @@ class RateSource:
         (``iter_feed_packed(owned=True)``).
         """
         bounds = [(i, min(self.n, i + size)) for i in range(0, self.n, size)]
-        if not prefetch or len(bounds) < 2:
+        depth = int(prefetch)
+        if depth < 1 or len(bounds) < 2:
             return self._chunks_plain(profile, bounds)
+        from collections import deque
         from concurrent.futures import ThreadPoolExecutor
         ex = ThreadPoolExecutor(1, thread_name_prefix="r2s-read")
-        return self._chunks_prefetched(profile, bounds, ex, ex.submit(self._read, profile, *bounds[0]))
+        futs = deque(ex.submit(self._read, profile, *b) for b in bounds[:depth])
+        return self._chunks_prefetched(profile, bounds, ex, futs, depth)
 
     def _chunks_plain(self, profile, bounds):
         try:
@@ -282,11 +287,12 @@ class RateSource:
         finally:
             self.close()
 
-    def _chunks_prefetched(self, profile, bounds, ex, fut):
+    def _chunks_prefetched(self, profile, bounds, ex, futs, depth):
         try:
             for k, (i, j) in enumerate(bounds):
-                rate = fut.result()
-                fut = ex.submit(self._read, profile, *bounds[k + 1]) if k + 1 < len(bounds) else None
+                rate = futs.popleft().result()
+                if k + depth < len(bounds):
+                    futs.append(ex.submit(self._read, profile, *bounds[k + depth]))
                 yield rate, (None if self.t_s is None else self.t_s[i:j])
                 del rate
                 self._release(i, j)
@@ -339,6 +345,18 @@ def run(args) -> int:
     return 0
 
 
+def read_ahead(src, sim, size: int, max_bytes: int = 256 << 20) -> int:
+    """Chunks of ``size`` rows to keep read ahead: about two simulator blocks' worth of keyframes (with one
+    chunk ahead, a chunk smaller than a block that completes no block leaves the kernel waiting for the
+    next read), at most ``max_bytes`` of them; one for per-interval rates (a chunk is whole blocks)."""
+    if src.per_interval or src.n < 2:
+        return 1
+    spacing_s = (src.t_s[-1] - src.t_s[0]) / (src.n - 1)  # mean keyframe spacing
+    per_block = sim.block * sim.interval_s / spacing_s
+    row_bytes = 4 * src.shape[0] * src.shape[1]
+    return int(max(1, min(math.ceil(2 * per_block / size), max_bytes // max(size * row_bytes, 1))))
+
+
 @contextlib.contextmanager
 def _start_up():
     """No cyclic garbage collection while the command starts: imports and numba's cache load make
@@ -382,6 +400,6 @@ def _prepare(args, say):
         # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
         # whole blocks (aligned): the schedule then takes views of them and never copies rows
         size = sim.block * -(-size // sim.block)
-    chunks = src.chunks(profile, size)  # the reader thread starts on the first chunk now ...
+    chunks = src.chunks(profile, size, read_ahead(src, sim, size))  # the reader thread starts now ...
     sim.warm_up()  # ... while numba loads the kernels from its cache here
     return src, profile, sim, chunks
