@@ -228,3 +228,25 @@ def test_npy_rows_are_map_views_released_after_use(tmp_path, dtype):
     np.testing.assert_array_equal(rows, a[1:4].astype(np.float32))
     got = [r for r, _ in RateSource(tmp_path / "r.npy").chunks(None, 4)]
     np.testing.assert_array_equal(np.concatenate(got), a.astype(np.float32))
+
+
+def test_read_ahead_covers_two_blocks_of_keyframes_within_a_memory_cap():
+    from types import SimpleNamespace as NS
+
+    from render2spike.commands.simulate import read_ahead
+    sim = NS(block=1000, interval_s=50e-6)  # 50 ms per block: 50 keyframes at 1 kHz
+    kf = NS(per_interval=False, n=2001, t_s=np.arange(2001) * 1e-3, shape=(250, 400))
+    assert read_ahead(kf, sim, 32) == 4  # ceil(2 * 50 / 32)
+    assert read_ahead(kf, sim, 100) == 1
+    assert read_ahead(kf, sim, 32, max_bytes=3 * 32 * 4 * 250 * 400) == 3
+    assert read_ahead(NS(per_interval=True, n=5000), sim, 1000) == 1
+
+
+@pytest.mark.parametrize("depth", [0, 1, 3])
+def test_read_ahead_depth_gives_the_same_chunks(tmp_path, depth):
+    p = sensor.SensorProfile.load("vidar-default").window(0, 0, 8, 16)
+    phi = _frames(tmp_path / "fr", n=10)
+    got = list(RateSource(tmp_path / "fr").chunks(p, 3, prefetch=depth))
+    assert [r.shape[0] for r, _ in got] == [3, 3, 3, 1]
+    np.testing.assert_array_equal(np.concatenate([r for r, _ in got]), sensor.photoelectron_rate(phi, p))
+    np.testing.assert_array_equal(np.concatenate([t for _, t in got]), np.arange(10) * 1e-3)
