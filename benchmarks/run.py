@@ -285,18 +285,14 @@ def cli_rows(profile_name: str, frames_durations, npy_durations, lux: float = 5.
                 _subset(full, d / f"frames_{dur:g}", n)
             rows.append(_cli_row("frames folder", src, d, profile_name, prof, lux, dur, "keyframes", startup, repeats))
             say(_cli_say(rows[-1]))
-        for dur in npz_durations:
-            src = _make_npz(d / f"rate_{dur:g}.npz", prof, lux, dur)
-            rows.append(_cli_row(".npz keyframes", src, d, profile_name, prof, lux, dur, "keyframes", startup,
-                                 repeats))
-            say(_cli_say(rows[-1]))
-            src.unlink()
-        for dur in npy_durations:
-            src = _make_npy(d / f"rate_{dur:g}.npy", prof, lux, dur)
-            rows.append(_cli_row(".npy per interval", src, d, profile_name, prof, lux, dur, "per_interval", startup,
-                                 repeats))
-            say(_cli_say(rows[-1]))
-            src.unlink()
+        for kind, make, suffix, kernel_input, durations in (
+                (".npz keyframes", _make_npz, ".npz", "keyframes", npz_durations),
+                (".npy per interval", _make_npy, ".npy", "per_interval", npy_durations)):
+            for dur in durations:
+                src = make(d / f"rate_{dur:g}{suffix}", prof, lux, dur)
+                rows.append(_cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, repeats))
+                say(_cli_say(rows[-1]))
+                src.unlink()
     return rows
 
 
