@@ -389,7 +389,9 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
              f"Load average before / after: {meta['load_before']} / {meta['load_after']}  ",
              f"Profile: {meta['profile']} ({meta['height']} x {meta['width']}, threshold {meta['threshold_e']:g} e-); "
              f"input: keyframes at 1 kHz of a moving texture (reflectance mean 0.5, f/2, T = 0.9, 5000 K); output: "
-             f"bit-packed spike stream written to {meta['sink']}.  ",
+             f"bit-packed spike stream written to {meta['sink']}.  "]
+    if rows:  # the kernel table (absent with --only-cli)
+        lines += [
              f"Fast paths: {meta['duration_s']:g} s of camera time ({int(round(seconds_to_intervals(meta['duration_s'])))} intervals). "
              f"Reference: {meta['ref_intervals']} intervals, throughput extrapolated (cost per interval is constant). "
              "Real time = 2.0e9 pixel-steps/s (400 x 250 at 20 kHz). JIT/cache-load time is excluded from the "
