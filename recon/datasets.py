@@ -63,8 +63,9 @@ class Sample:
         TFP windows [spikes/interval], the network input.
     target : float32 (1, H, W)
         Ground truth [ideal spikes per interval = rate_e / threshold_e].
-    maps : float32 (2, H, W)
-        Dark-event probability per interval and PRNU gain of the pixels.
+    maps : float32 (3, H, W)
+        Dark-event probability per interval, PRNU gain and hot-pixel indicator
+        of the pixels (:func:`sensor_maps`).
     spikes : bool (L, H, W) or None
         The spike stream (L >= M intervals), kept for classic methods.
     center : int
@@ -102,9 +103,16 @@ def _children(ss: np.random.SeedSequence):
 
 
 def sensor_maps(profile: SensorProfile) -> np.ndarray:
-    """float32 (2, H, W): dark-event probability per interval (1 - exp(-mu_DC)) and PRNU gain."""
+    """float32 (3, H, W): dark-event probability per interval (1 - exp(-mu_DC)), PRNU gain, hot-pixel indicator.
+
+    The network's map features use the first ``n_maps`` channels (2, or 1 for
+    the ``rsir`` preset); the hot-pixel indicator (1 where the profile's pixel is
+    hot, else 0) tells the output head's classic estimates which pixels to
+    leave out of their smoothing (:func:`recon.nets.classic_bank`).
+    """
     from sensor.effects import dark_event_probability
-    return np.stack([dark_event_probability(profile.dark_rate), profile.prnu_gain]).astype(np.float32)
+    return np.stack([dark_event_probability(profile.dark_rate), profile.prnu_gain,
+                     profile.hot_mask]).astype(np.float32)
 
 
 def parse_hw(text, field_name: str) -> tuple[int, int]:

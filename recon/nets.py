@@ -31,6 +31,7 @@ Kornia-style pairs: :func:`haar_dwt` / :class:`HaarDWT`, :func:`haar_idwt` /
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
 from sensor.errors import DependencyError, InputError
@@ -383,6 +384,133 @@ class Refine(nn.Module):
         return denoised * (1 - w) + fused * w
 
 
+# ------------------------------------------------------------------------------------- classic-bank output head
+def gaussian_blur(x: "torch.Tensor", sigma: float) -> "torch.Tensor":
+    """Separable Gaussian filter of ``sigma`` pixels on (B, C, H, W), replicate edges; ``sigma <= 0``: ``x``.
+
+    The kernel is truncated at ``ceil(3 sigma)`` pixels and normalised to sum 1.
+    """
+    _check_4d(x, "x")
+    if sigma <= 0:
+        return x
+    r = max(int(math.ceil(3.0 * float(sigma))), 1)
+    t = torch.arange(-r, r + 1, device=x.device, dtype=x.dtype)
+    k = torch.exp(-0.5 * (t / float(sigma)) ** 2)
+    k = k / k.sum()
+    C = x.shape[1]
+    y = F.pad(x, (r, r, 0, 0), mode="replicate")
+    y = F.conv2d(y, k.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
+    y = F.pad(y, (0, 0, r, r), mode="replicate")
+    return F.conv2d(y, k.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
+
+
+class GaussianBlur(nn.Module):
+    """Module form of :func:`gaussian_blur`."""
+
+    def __init__(self, sigma: float):
+        super().__init__()
+        self.sigma = float(sigma)
+
+    def forward(self, x):
+        return gaussian_blur(x, self.sigma)
+
+
+def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -> "torch.Tensor":
+    """The classic estimates the output head chooses among: (B, len(sigmas), H, W), target units.
+
+    The TFP over all ``windows`` (B, N, H, W) [spikes per interval], its
+    excess over each pixel's dark-event probability smoothed by a Gaussian of
+    each width in ``sigmas`` [pixels] with hot pixels left out (normalised
+    convolution, as :func:`recon.baselines.smooth_rate`; width 0 keeps each
+    pixel's own value, hot pixels take their neighbours' at 1 pixel), clipped
+    at zero, divided by ``1 - p_dark`` and the PRNU gain. For the crossing
+    reset below about 0.9 spikes per interval this is the dead-time-corrected
+    TFP of :func:`recon.baselines.tfp_dt_denoised` (the read-out is linear
+    there); ``maps`` (B, >= 2, H, W) = dark probability, PRNU gain and, as a
+    third channel, the hot-pixel indicator (:func:`recon.datasets.sensor_maps`);
+    None: no dark, gain 1, no hot pixels.
+    """
+    _check_4d(windows, "windows")
+    r = windows.mean(dim=1, keepdim=True)
+    if maps is None:
+        p = torch.zeros_like(r)
+        g = torch.ones_like(r)
+        w = torch.ones_like(r)
+    else:
+        _check_4d(maps, "maps")
+        if maps.shape[0] != r.shape[0] or maps.shape[-2:] != r.shape[-2:]:
+            raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(windows.shape)}", field="maps")
+        p = maps[:, 0:1].to(r.dtype)
+        g = maps[:, 1:2].to(r.dtype).clamp_min(0.05) if maps.shape[1] > 1 else torch.ones_like(r)
+        w = (1.0 - (maps[:, 2:3] > 0).to(r.dtype)) if maps.shape[1] > 2 else torch.ones_like(r)
+    x = r - p
+    xw = x * w
+
+    def smooth(sig):
+        return gaussian_blur(xw, sig) / gaussian_blur(w, sig).clamp_min(1e-6)
+
+    mu = -torch.log1p(-p.clamp(0.0, 0.999))  # expected dark events per interval
+    out = []
+    for sig in sigmas:
+        xs = torch.where(w > 0, x, smooth(1.0)) if sig <= 0 else smooth(sig)
+        out.append(crossing_light(xs + p, mu) / g)
+    return torch.cat(out, dim=1)
+
+
+def crossing_light(rate, mu) -> "torch.Tensor":
+    """Light [threshold crossings per interval] of a crossing-reset pixel from its spike ``rate`` [per interval].
+
+    A pixel whose light crosses the threshold every ``T = 1 / x`` intervals
+    (nearly deterministic for thresholds of thousands of electrons) and whose
+    dark events (Poisson, ``mu`` per interval) each fire it and discard the
+    charge fires at ``r = 1 / E[min(T, Exp(mu))] = mu / (1 - exp(-mu / x))``;
+    inverted: ``x = -mu / log(1 - mu / r)`` for ``r > mu``, else 0 (``x = r``
+    as ``mu -> 0``). Refractory loss and the one-spike-per-interval read-out
+    are left out (below about 0.9 spikes per interval they change ``x`` by
+    under 1 %; the exact inversion is :func:`recon.classic.deadtime_correct`).
+    """
+    r = rate.clamp_min(0.0)
+    small = mu < 1e-9
+    safe_mu = torch.where(small, torch.ones_like(mu), mu)
+    ratio = (safe_mu / r.clamp_min(1e-12)).clamp(max=1.0 - 1e-7)
+    x = torch.where(r > safe_mu, -safe_mu / torch.log1p(-ratio), torch.zeros_like(r))
+    return torch.where(small, r, x)
+
+
+class BankHead(nn.Module):
+    """Output head: per-pixel softmax weights over the network's image and a bank of classic estimates.
+
+    ``forward(candidates, level, rate)``: ``candidates`` (B, K, H, W) in the
+    network's scaled units (the network's output first, then
+    :func:`classic_bank`), ``level`` (B, 1, H, W) the log mean count,
+    ``rate`` (B, 1, H, W) each pixel's raw TFP [spikes per interval] (near 1:
+    read-out saturation, where the classic estimates clip). A CNN
+    (three 3x3 convolutions, LeakyReLU) maps them to K weights per pixel
+    (softmax) and one additive correction (scaled units); returns the weighted
+    sum plus the correction (B, 1, H, W), the weights and their logits (for
+    the routing term of :func:`rsir_loss`). The last convolution starts at
+    zero (equal weights, no correction). The correction lets the output leave
+    the candidates' range where all of them are biased the same way, as above
+    read-out saturation (about one spike per interval), where every estimate
+    clips at 1 and the light is higher.
+    """
+
+    def __init__(self, n_candidates: int, width: int = 16):
+        super().__init__()
+        self.net = nn.Sequential(nn.Conv2d(n_candidates + 2, width, 3, padding=1), nn.LeakyReLU(0.1),
+                                 nn.Conv2d(width, width, 3, padding=1), nn.LeakyReLU(0.1),
+                                 nn.Conv2d(width, n_candidates + 1, 3, padding=1))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, candidates, level, rate):
+        _check_4d(candidates, "candidates")
+        z = self.net(torch.cat([candidates, level, rate], dim=1))
+        logits, correction = z[:, :-1], z[:, -1:]
+        wts = torch.softmax(logits, dim=1)
+        return (wts * candidates).sum(dim=1, keepdim=True) + correction, wts, logits
+
+
 # ------------------------------------------------------------------------------------------------ the network
 #: RSIRConfig presets of ``render2spike train --size`` (see :meth:`RSIRConfig.preset`)
 PRESETS = ("tiny", "paper", "rsir")
@@ -431,6 +559,17 @@ class RSIRConfig:
     the trained input; 0 at one spike), so the network knows the light level
     that the mean normalisation divides out and can smooth dim items more than
     bright ones.
+
+    ``head``: an output head (:class:`BankHead`) after the recurrent network
+    picks, per pixel, softmax weights over the network's image and the classic
+    estimates of :func:`classic_bank` (the linearised TFP over all windows
+    smoothed by Gaussians of ``head_sigmas`` pixels, 0 = unsmoothed); the
+    output is their weighted sum. The network can then never be forced below
+    the classic estimates it sees, and it can smooth flat regions and keep
+    edges (an adaptive filter) where the fixed-width classic baseline must
+    choose one width per image (see docs/recon.md, "The output head").
+    ``head_width`` channels in its CNN; ``head_route_weight`` weighs its
+    routing term in the loss (:func:`head_routing_loss`).
     """
 
     n_windows: int = 10
@@ -455,10 +594,18 @@ class RSIRConfig:
     cumulative: bool = False
     linearise: bool = False
     level_input: bool = False
+    head: bool = False
+    head_sigmas: tuple = (0.0, 0.75, 1.5, 3.0, 6.0)
+    head_width: int = 16
+    head_route_weight: float = 0.02
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
             raise InputError(f"normalise must be 'fixed' or 'mean', got '{self.normalise}'", field="normalise")
+        self.head_sigmas = tuple(float(v) for v in self.head_sigmas)
+        if not self.head_sigmas or any(v < 0 or not math.isfinite(v) for v in self.head_sigmas):
+            raise InputError(f"head_sigmas must be widths >= 0 [pixels], got {self.head_sigmas}",
+                             field="head_sigmas")
 
     @classmethod
     def tiny(cls, **kw) -> "RSIRConfig":
@@ -539,6 +686,7 @@ class RSIRNet(nn.Module):
         if cfg.cumulative:  # start as the identity on the fused bands
             nn.init.zeros_(self.denoiser.out.weight)
             nn.init.zeros_(self.denoiser.out.bias)
+        self.head = BankHead(1 + len(cfg.head_sigmas), cfg.head_width) if cfg.head else None
 
     @property
     def multiple(self) -> int:
@@ -583,15 +731,37 @@ class RSIRNet(nn.Module):
             feats[:, 1] = feats[:, 1] - 1.0
         return feats
 
-    def forward(self, windows, maps=None):
-        """``windows`` (B, N, H, W) spikes per interval, any N >= 1 (trained with ``config.n_windows``)."""
+    def level(self, windows) -> "torch.Tensor":
+        """(B, 1, 1, 1): log10 of the mean spike rate times the trained input length (the mean count)."""
+        return torch.log10((windows.detach().mean(dim=(1, 2, 3), keepdim=True)
+                            * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
+
+    def forward(self, windows, maps=None, *, trunk_grad: bool = True):
+        """``windows`` (B, N, H, W) spikes per interval, any N >= 1 (trained with ``config.n_windows``).
+
+        ``trunk_grad=False`` runs the recurrent network without gradients (training the output head alone).
+        """
+        if self.head is None or trunk_grad:
+            out = self._trunk(windows, maps)
+        else:
+            with torch.no_grad():
+                out = self._trunk(windows, maps)
+        if self.head is not None:
+            s = out["scale"]
+            bank = classic_bank(windows, maps, self.config.head_sigmas)
+            cands = torch.cat([out["output"], bank], dim=1)
+            level = self.level(windows).expand(-1, 1, *windows.shape[-2:])
+            y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True))
+            out["head"], out["head_weights"], out["head_logits"] = y / s, wts, logits
+            out["head_candidates"] = cands
+            out["output"] = out["head"]
+        return out
+
+    def _trunk(self, windows, maps=None):
         _check_4d(windows, "windows")
         H, W = windows.shape[-2:]
         s = self.input_scale(windows)
-        level = None
-        if self.config.level_input:  # log10 of the mean rate times the trained input length (raw windows)
-            level = torch.log10((windows.detach().mean(dim=(1, 2, 3), keepdim=True)
-                                 * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
+        level = self.level(windows) if self.config.level_input else None
         if self.config.linearise and maps is not None:
             _check_4d(maps, "maps")
             if maps.shape[0] != windows.shape[0] or maps.shape[-2:] != windows.shape[-2:]:
@@ -630,12 +800,30 @@ class RSIRNet(nn.Module):
         return self.forward(windows, maps)["output"]
 
 
-def rsir_loss(model: RSIRNet, out: dict, target):
+def head_routing_loss(logits, candidates, y, sigma: float = 2.0):
+    """Cross-entropy of the head's per-pixel weights against the locally best candidate.
+
+    ``candidates`` (B, K, H, W) and ``y`` (B, 1, H, W) in the same units;
+    the best candidate of a pixel is the one with the least absolute error
+    averaged by a Gaussian of ``sigma`` pixels around it (a single pixel's
+    error is mostly noise). The L1 term alone lets the softmax settle on the
+    candidate that wins on average and then starves the others of gradient
+    (their weights go to ~1e-7); this term keeps every candidate's gradient
+    alive where it is the better one (e.g. the unsmoothed estimate in bright
+    light).
+    """
+    err = gaussian_blur((candidates - y).abs().detach(), sigma)
+    return F.cross_entropy(logits, err.argmin(dim=1))
+
+
+def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
     """Loss on every step (L1, in the network's scaled units), averaged over the steps.
 
     Per step: |refine - y| + |fusion - y| + |denoise - y| + sum over the four
     Haar bands of |denoise_band - y_band| + nim_loss_weight * |nim - y|,
-    each a mean over pixels. Returns (loss, dict of the mean components).
+    each a mean over pixels; with an output head, plus |head - y| (the final
+    image) and ``head_route_weight`` x :func:`head_routing_loss`. ``head_only``: the head's term alone (training the head on a fixed
+    network). Returns (loss, dict of the mean components).
     """
     _check_4d(target, "target", channels=1)
     s = out["scale"]
@@ -651,7 +839,17 @@ def rsir_loss(model: RSIRNet, out: dict, target):
         parts["nim"] = parts["nim"] + F.l1_loss(out["nim"][t] * s, y)
     total = (parts["refine"] + parts["fusion"] + parts["denoise"] + parts["bands"]
              + model.config.nim_loss_weight * parts["nim"]) / n
-    return total, {k: float(v.detach() if hasattr(v, "detach") else v) / n for k, v in parts.items()}
+    parts = {k: float(v.detach() if hasattr(v, "detach") else v) / n for k, v in parts.items()}
+    if "head" in out:
+        head = F.l1_loss(out["head"] * s, y)
+        route = head_routing_loss(out["head_logits"], out["head_candidates"] * s, y)
+        parts["head"] = float(head.detach())
+        parts["route"] = float(route.detach())
+        head = head + model.config.head_route_weight * route
+        total = head if head_only else total + head
+    elif head_only:
+        raise InputError("head_only needs a network with an output head (config.head)", field="head")
+    return total, parts
 
 
 # ----------------------------------------------------------------------------------------------- checkpoints

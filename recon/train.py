@@ -31,7 +31,7 @@ import numpy as np
 from sensor.errors import InputError
 from sensor.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
 
-LOSS_FIELDS = ["step", "epoch", "loss", "refine", "fusion", "denoise", "bands", "nim", "lr", "elapsed_s"]
+LOSS_FIELDS = ["step", "epoch", "loss", "refine", "fusion", "denoise", "bands", "nim", "head", "route", "lr", "elapsed_s"]
 
 
 @dataclass
@@ -49,6 +49,11 @@ class TrainConfig:
     max_minutes: float | None = None
     device: str = "auto"
     threads: int | None = None
+    train_only: str | None = None
+
+    def __post_init__(self):
+        if self.train_only not in (None, "head"):
+            raise InputError(f"train_only must be None or 'head', got '{self.train_only}'", field="train_only")
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -106,7 +111,7 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
     w = csv.DictWriter(buf, fieldnames=LOSS_FIELDS)
     w.writeheader()
     for r in rows:
-        w.writerow({k: (int(r[k]) if k in ("step", "epoch") else f"{r[k]:.6g}") for k in LOSS_FIELDS})
+        w.writerow({k: (int(r[k]) if k in ("step", "epoch") else f"{r.get(k, 0.0):.6g}") for k in LOSS_FIELDS})
     write_text_atomic(out_dir / "loss.csv", buf.getvalue())
     if not rows:
         return
@@ -129,7 +134,8 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
 
 
 def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None = None, resume: bool = False,
-          init_checkpoint=None, run_info: dict | None = None, progress: bool = True) -> dict:
+          init_checkpoint=None, add_head: bool = False, run_info: dict | None = None,
+          progress: bool = True) -> dict:
     """Train (or resume) an RSIR-architecture network on ``dataset``; returns a summary dict.
 
     Parameters
@@ -149,6 +155,11 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         network layout is the checkpoint's. A ``fixed``-normalised network
         adopts the intensity scale of the new data (``estimate_intensity_scale``);
         a ``mean``-normalised one needs none.
+    add_head : bool
+        With ``init_checkpoint``: add an output head (``RSIRConfig.head``) to
+        the checkpoint's network when it has none (its weights are kept; the
+        head starts at equal weights). ``train_config.train_only = "head"``
+        then trains the head alone on the fixed network.
     run_info : dict
         Stored in config.json (data spec, noise model, command).
     """
@@ -190,6 +201,8 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
             model, _ = load_checkpoint(init_checkpoint, device)
             if model.config.normalise == "fixed":  # adopt the new data's light level (the weights stay)
                 model.config.intensity_scale = estimate_intensity_scale(dataset)
+            if add_head and model.head is None:  # the checkpoint's network plus a new output head
+                model = _with_head(model, cfg.seed, device)
         else:
             nc = net_config or RSIRConfig.tiny()
             if nc.normalise == "fixed" and nc.intensity_scale == 1.0:
@@ -202,7 +215,12 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
     if dataset.n_windows != model.config.n_windows:
         raise InputError(f"the data give {dataset.n_windows} windows but the network takes "
                          f"{model.config.n_windows}", field="--data")
-    opt = torch.optim.Adam(model.parameters(), lr=lr_at(step, cfg))
+    head_only = cfg.train_only == "head"
+    if head_only and model.head is None:
+        raise InputError("train_only='head' needs a network with an output head (add one with add_head / "
+                         "--head when starting from --init)", field="--train-only")
+    params = list(model.head.parameters()) if head_only else list(model.parameters())
+    opt = torch.optim.Adam(params, lr=lr_at(step, cfg))
     if ckpt is not None and "optimizer" in ckpt:
         try:
             opt.load_state_dict(ckpt["optimizer"])
@@ -241,8 +259,8 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                 for g in opt.param_groups:
                     g["lr"] = lr_at(step, cfg)
                 batch = {k: v.to(device) for k, v in batch.items()}
-                out = model(batch["windows"], batch["maps"])
-                loss, parts = rsir_loss(model, out, batch["target"])
+                out = model(batch["windows"], batch["maps"], trunk_grad=not head_only)
+                loss, parts = rsir_loss(model, out, batch["target"], head_only=head_only)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -276,6 +294,22 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                "model": str(final), "intensity_scale": model.config.intensity_scale, "device": str(device)}
     write_json_atomic(out_dir / "summary.json", summary)
     return summary
+
+
+def _with_head(model, seed: int, device):
+    """A copy of ``model`` with an output head added (same weights; the head seeded by ``seed``)."""
+    import torch
+
+    from .nets import RSIRConfig, RSIRNet
+    cfg = RSIRConfig.from_dict({**model.config.to_dict(), "head": True})
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        new = RSIRNet(cfg).to(device)
+    missing, unexpected = new.load_state_dict(model.state_dict(), strict=False)
+    if unexpected or any(not k.startswith("head.") for k in missing):
+        raise InputError(f"could not add a head to the checkpoint's network (missing {missing}, unexpected "
+                         f"{unexpected})", field="--head")
+    return new
 
 
 def _loader(dataset, batches, workers: int):

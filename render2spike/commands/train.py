@@ -66,6 +66,13 @@ def register(subparsers) -> None:
     p.add_argument("--level-input", action="store_true",
                    help="give the denoiser and refine stage the log mean spike count (the light level the mean "
                         "normalisation divides out); not with --init")
+    p.add_argument("--head", action="store_true",
+                   help="add the output head: per-pixel weights over the network's image and Gaussian-smoothed "
+                        "classic estimates (see docs/recon.md, 'The output head'); allowed with --init (the "
+                        "checkpoint's network plus a new head)")
+    p.add_argument("--train-only", choices=["head"],
+                   help="train only the output head, keeping the rest of the network fixed (with --init "
+                        "CKPT --head: a few CPU minutes)")
     p.add_argument("--normalise", choices=["mean", "fixed"],
                    help="input/output normalisation (default mean; see below); not with --init")
     p.add_argument("--width", type=int, help="channels of the denoiser (overrides the preset)")
@@ -117,13 +124,14 @@ def run(args) -> int:
     if args.init and given:
         raise InputError(f"--init takes the network layout from the checkpoint; drop {', '.join(given)}",
                          field="--init")
-    if args.resume and given:
-        raise InputError(f"--resume continues the stored network; drop {', '.join(given)}", field="--resume")
+    if args.resume and (given or args.head):
+        raise InputError(f"--resume continues the stored network; drop {', '.join(given + ['--head'] * args.head)}",
+                         field="--resume")
     ds = build_datasets(args.data, split="train", model=args.noise_model, seed=args.seed)
     if args.overwrite:
         clear_run(Path(args.out))
     net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
-                             linearise=args.linearise, level_input=args.level_input)
+                             linearise=args.linearise, level_input=args.level_input, head=args.head)
     for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:
@@ -131,11 +139,11 @@ def run(args) -> int:
     cfg = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=args.lr,
                       checkpoint_every=args.checkpoint_every, seed=args.seed, workers=args.workers,
                       max_minutes=args.max_minutes, device=args.device,
-                      threads=args.threads)
+                      threads=args.threads, train_only=args.train_only)
     info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv),
             "size": args.size or "tiny"}
     summary = train(ds, args.out, net_config=net, train_config=cfg, resume=args.resume, init_checkpoint=args.init,
-                    run_info=info, progress=not args.quiet)
+                    add_head=args.head, run_info=info, progress=not args.quiet)
     print(f"trained {summary['steps_done']} steps in {summary['elapsed_s'] / 60:.1f} min on {summary['device']}; "
           f"final loss {summary['final_loss']:.4g}; model: {summary['model']}")
     return 0

@@ -48,7 +48,7 @@ def test_davis_loader_shapes_seeding_and_split(davis_root):
                       frame_stride=2, **SMALL)
     assert ds.sequences == ["seq-a", "seq-b"] and len(ds) == 4
     s = ds.sample(0)
-    assert s.windows.shape == (10, 8, 8) and s.target.shape == (1, 8, 8) and s.maps.shape == (2, 8, 8)
+    assert s.windows.shape == (10, 8, 8) and s.target.shape == (1, 8, 8) and s.maps.shape == (3, 8, 8)
     assert s.windows.dtype == np.float32 and s.spikes is None
     assert 20.0 <= s.meta["lux"] <= 200.0
     again = ds.sample(0)

@@ -32,3 +32,30 @@ def test_train_overwrite(tmp_path, capsys):
     assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--resume", "--quiet") == 2
     err = capsys.readouterr().err
     assert "loss.csv" in err and "Traceback" not in err
+
+
+@pytest.mark.torch
+def test_train_head_from_init_on_the_cli(tmp_path, capsys):
+    """--init CKPT --head --train-only head: the checkpoint's network is kept, a head is added and trained."""
+    from recon.nets import load_checkpoint
+    root = make_davis_like(tmp_path / "davis", ["tr-a", "te-a"], n_frames=3, size=(8, 8), seed=4)
+    split = tmp_path / "split.json"
+    split.write_text(json.dumps({"train": ["tr-a"], "test": ["te-a"]}))
+    data = f"davis:{root}:split_file={split}:res=8x8:warmup=8:frame_stride=2:lux=100"
+    net = ["--width", 8, "--res-blocks", 1, "--attn-depth", 1, "--heads", 1, "--attn-window", 4, "--quiet"]
+    assert _cli("train", "--data", data, "--out", tmp_path / "a", "--steps", 1, "--batch-size", 1, *net) == 0
+    base, _ = load_checkpoint(tmp_path / "a" / "model.pt")
+    assert base.head is None
+    assert _cli("train", "--data", data, "--out", tmp_path / "b", "--steps", 2, "--batch-size", 1, "--quiet",
+                "--init", tmp_path / "a" / "model.pt", "--head", "--train-only", "head") == 0
+    model, ckpt = load_checkpoint(tmp_path / "b" / "model.pt")
+    assert model.head is not None and ckpt["train"]["train_only"] == "head"
+    for k, v in base.state_dict().items():  # everything but the head unchanged
+        torch.testing.assert_close(model.state_dict()[k], v)
+    assert "head" in (tmp_path / "b" / "loss.csv").read_text().splitlines()[0]
+    # --train-only head without a head is refused with a message; --resume cannot add one
+    assert _cli("train", "--data", data, "--out", tmp_path / "c", "--steps", 1, "--quiet",
+                "--init", tmp_path / "a" / "model.pt", "--train-only", "head") == 2
+    assert "output head" in capsys.readouterr().err
+    assert _cli("train", "--data", data, "--out", tmp_path / "b", "--steps", 3, "--resume", "--head", "--quiet") == 2
+    assert "--head" in capsys.readouterr().err
