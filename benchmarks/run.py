@@ -248,8 +248,26 @@ def _make_npy(path: Path, profile, lux: float, duration_s: float) -> Path:
     return path
 
 
+def _make_npz(path: Path, profile, lux: float, duration_s: float) -> Path:
+    """The benchmark's keyframes (1 kHz) as an .npz: rate_e (K, H, W) float32 [e-/interval] and t_s (K,) [s],
+    stored (not deflated), written keyframe by keyframe (never whole in memory)."""
+    import zipfile
+    scene = MovingScene(profile, lux, seed=0, duration_s=duration_s)
+    K = scene.n_keyframes
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as zf:
+        with zf.open("rate_e.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array_header_2_0(fh, {"descr": "<f4", "fortran_order": False,
+                                                      "shape": (K,) + profile.shape})
+            for i in range(K):
+                fh.write(np.ascontiguousarray(scene.frame(i), np.float32).tobytes())
+        buf = io.BytesIO()
+        np.save(buf, np.arange(K) * scene.dt)
+        zf.writestr("t_s.npy", buf.getvalue())
+    return path
+
+
 def cli_rows(profile_name: str, frames_durations, npy_durations, lux: float = 5.0, tmpdir=None, say=print,
-             repeats: int = 3):
+             repeats: int = 3, npz_durations=()):
     """End-to-end `render2spike simulate` vs the kernel on the same input, per input kind and duration."""
     prof = _profile(profile_name)
     rows = []
@@ -267,12 +285,14 @@ def cli_rows(profile_name: str, frames_durations, npy_durations, lux: float = 5.
                 _subset(full, d / f"frames_{dur:g}", n)
             rows.append(_cli_row("frames folder", src, d, profile_name, prof, lux, dur, "keyframes", startup, repeats))
             say(_cli_say(rows[-1]))
-        for dur in npy_durations:
-            src = _make_npy(d / f"rate_{dur:g}.npy", prof, lux, dur)
-            rows.append(_cli_row(".npy per interval", src, d, profile_name, prof, lux, dur, "per_interval", startup,
-                                 repeats))
-            say(_cli_say(rows[-1]))
-            src.unlink()
+        for kind, make, suffix, kernel_input, durations in (
+                (".npz keyframes", _make_npz, ".npz", "keyframes", npz_durations),
+                (".npy per interval", _make_npy, ".npy", "per_interval", npy_durations)):
+            for dur in durations:
+                src = make(d / f"rate_{dur:g}{suffix}", prof, lux, dur)
+                rows.append(_cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, repeats))
+                say(_cli_say(rows[-1]))
+                src.unlink()
     return rows
 
 
@@ -285,6 +305,7 @@ def _best(runs):
 
 def _cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, repeats=3):
     # end to end and kernel alternate, so a drifting load hits both alike; the fastest of each is kept
+    load = os.getloadavg()[0]
     e2e_runs, ker_runs = [], []
     for _ in range(repeats):
         e2e_runs.append(_cli(src, d / "o.dat", profile_name))
@@ -297,7 +318,8 @@ def _cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, 
             "e2e_pixel_steps_per_s": steps / e2e["wall_s"], "e2e_peak_rss_mib": e2e["peak_rss_mib"],
             "startup_s": startup, "kernel_wall_s": ker["wall_s"], "kernel_pixel_steps_per_s": ker["pixel_steps_per_s"],
             "kernel_peak_rss_mib": ker["peak_rss_mib"], "e2e_vs_kernel": ker["wall_s"] / e2e["wall_s"],
-            "e2e_vs_kernel_after_startup": ker["wall_s"] / max(e2e["wall_s"] - startup, 1e-9)}
+            "e2e_vs_kernel_after_startup": ker["wall_s"] / max(e2e["wall_s"] - startup, 1e-9),
+            "load_1min": load}
 
 
 def _cli_say(r):
@@ -367,7 +389,9 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
              f"Load average before / after: {meta['load_before']} / {meta['load_after']}  ",
              f"Profile: {meta['profile']} ({meta['height']} x {meta['width']}, threshold {meta['threshold_e']:g} e-); "
              f"input: keyframes at 1 kHz of a moving texture (reflectance mean 0.5, f/2, T = 0.9, 5000 K); output: "
-             f"bit-packed spike stream written to {meta['sink']}.  ",
+             f"bit-packed spike stream written to {meta['sink']}.  "]
+    if rows:  # the kernel table (absent with --only-cli)
+        lines += [
              f"Fast paths: {meta['duration_s']:g} s of camera time ({int(round(seconds_to_intervals(meta['duration_s'])))} intervals). "
              f"Reference: {meta['ref_intervals']} intervals, throughput extrapolated (cost per interval is constant). "
              "Real time = 2.0e9 pixel-steps/s (400 x 250 at 20 kHz). JIT/cache-load time is excluded from the "
@@ -392,14 +416,16 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
         lines += ["", "`render2spike simulate` end to end (a child process: imports, JIT cache load, reading the input, "
                   "writing a .dat) vs the kernel on the same input in the same run (elssim, fast, 5 lux; kernel = "
                   "`SpikeSimulator.iter_feed_packed` on in-memory input, output written to disk, JIT excluded). "
-                  "Start-up = the command on a 2-frame folder. Each figure is the fastest of 3 runs, end to end and "
-                  "kernel alternating; peak RSS the largest of the 3.", "",
+                  f"Start-up = the command on a 2-frame folder ({cli_rows_[0]['startup_s']:.2f} s, fastest of 3); "
+                  "\"after start-up\" = kernel s / (end-to-end s - start-up). Each figure is the fastest of 3 runs, "
+                  "end to end and kernel alternating; peak RSS the largest of the 3; load = 1-minute load average "
+                  "when the row started.", "",
                   "| input | camera s | intervals | end-to-end s | kernel s | throughput vs kernel | after start-up "
-                  "| peak RSS end-to-end MiB | peak RSS kernel MiB |", "|---|---|---|---|---|---|---|---|---|"]
+                  "| peak RSS end-to-end MiB | peak RSS kernel MiB | load |", "|---|---|---|---|---|---|---|---|---|---|"]
         for r in cli_rows_:
             lines.append(f"| {r['input']} | {r['camera_s']:g} | {r['intervals']} | {r['e2e_wall_s']:.2f} | "
                          f"{r['kernel_wall_s']:.2f} | {r['e2e_vs_kernel']:.2f} | {r['e2e_vs_kernel_after_startup']:.2f} | "
-                         f"{r['e2e_peak_rss_mib']:.0f} | {r['kernel_peak_rss_mib']:.0f} |")
+                         f"{r['e2e_peak_rss_mib']:.0f} | {r['kernel_peak_rss_mib']:.0f} | {r.get('load_1min', float('nan')):.1f} |")
     lines.append("")
     write_text_atomic(out_dir / "benchmark.md", "\n".join(lines))
     return out_dir / "benchmark.md"
@@ -420,10 +446,12 @@ def main(argv=None):
     ap.add_argument("--no-memory-scan", action="store_true", help="skip the peak-memory-vs-duration rows")
     ap.add_argument("--quick", action="store_true", help="smoke run: 0.2 s of camera time, 100 reference intervals")
     ap.add_argument("--no-cli", action="store_true", help="skip `render2spike simulate` end to end vs the kernel")
-    ap.add_argument("--cli-frames", type=float, nargs="+", default=[0.25, 0.5, 1.0],
-                    help="camera seconds of the frames-folder inputs (default 0.25 0.5 1)")
-    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.025, 0.05, 0.1],
-                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s; default 0.025 0.05 0.1)")
+    ap.add_argument("--cli-frames", type=float, nargs="+", default=[0.5, 1.0, 2.0],
+                    help="camera seconds of the frames-folder inputs (default 0.5 1 2)")
+    ap.add_argument("--cli-npz", type=float, nargs="*", default=[0.5, 2.0],
+                    help="camera seconds of the keyframe .npz inputs (rate_e + t_s, 1 kHz; default 0.5 2)")
+    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.1, 0.2, 0.5],
+                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s; default 0.1 0.2 0.5)")
     ap.add_argument("--only-cli", action="store_true", help="only the end-to-end section")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--one", help=argparse.SUPPRESS)
@@ -466,9 +494,9 @@ def main(argv=None):
     cli = []
     if not a.no_cli:
         if a.quick:
-            a.cli_frames, a.cli_npy = [0.05, 0.1], [0.01, 0.02]
+            a.cli_frames, a.cli_npy, a.cli_npz = [0.05, 0.1], [0.01, 0.02], [0.05]
         cli = cli_rows(a.profile, sorted(a.cli_frames), sorted(a.cli_npy), say=lambda m: print(m, flush=True),
-                       repeats=1 if a.quick else 3)
+                       repeats=1 if a.quick else 3, npz_durations=sorted(a.cli_npz))
     prof = _profile(a.profile)
     meta = {"command": "python benchmarks/run.py " + " ".join(argv if argv is not None else sys.argv[1:]),
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": _machine(), "load_before": load_before,

@@ -643,7 +643,10 @@ class RSIRConfig:
         raise UnknownMethodError("network size preset", name, PRESETS)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """Plain JSON-ready values (``head_sigmas`` as a list)."""
+        d = asdict(self)
+        d["head_sigmas"] = list(d["head_sigmas"])
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "RSIRConfig":

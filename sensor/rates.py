@@ -291,13 +291,17 @@ class RateSchedule:
         self._offset = 0  # per_interval mode: index of the first buffered interval
         self.t0_s: float | None = None
 
-    def add(self, rate_e, t_s=None, copy: bool = True) -> None:
+    def add(self, rate_e, t_s=None, copy: bool = True, *, check: bool = True, owned: bool = False) -> None:
         """Buffer keyframes ``rate_e`` (K, H, W) at times ``t_s`` (K,) [s] (no ``t_s`` in per-interval mode).
 
         ``copy=False`` keeps a reference to the caller's array instead of a private copy
         (when no dtype conversion made one anyway); the caller must then call
         :meth:`detach` before it modifies that array (``SpikeSimulator`` does, at the
         end of every feed, so only the few keyframes still needed are ever copied).
+        ``owned=True``: the caller hands the array over and never modifies it again, so it is
+        kept as it is, without a copy now or at :meth:`detach`.
+        ``check=False`` skips :func:`check_rates` (finite, >= 0) for rates the caller has
+        already checked (timestamps are always checked).
         """
         given = rate_e
         rate_e = np.asarray(rate_e, dtype=np.float32)
@@ -305,7 +309,8 @@ class RateSchedule:
         shared = isinstance(given, np.ndarray) and np.may_share_memory(rate_e, given)
         if rate_e.ndim != 3:
             raise InputError(f"rate_e must be (K, H, W); got shape {rate_e.shape}", field="rate_e")
-        check_rates(rate_e)
+        if check:
+            check_rates(rate_e)
         if self.per_interval:
             if t_s is not None:
                 raise InputError("this stream takes one rate per interval (t_s=None)", field="t_s")
@@ -328,7 +333,9 @@ class RateSchedule:
             raise InputError(f"frame shape changed from {self._shape} to {rate_e.shape[1:]}", field="rate_e")
         self._shape = rate_e.shape[1:]
         if rate_e.shape[0]:
-            if shared and copy:
+            if owned:
+                shared = False
+            elif shared and copy:
                 rate_e, shared = rate_e.copy(), False
             self._chunks.append(rate_e)
             self._borrowed.append(shared)

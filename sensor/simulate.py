@@ -54,6 +54,19 @@ class SpikeSimulator:
     def interval_s(self) -> float:
         return self.profile.interval_s
 
+    def warm_up(self) -> None:
+        """Load (or compile) the fast kernels now, not at the first block: numba's JIT cache load
+        (~0.3 s once per process) runs here, on a throw-away 8 x 8 window of the profile with the
+        same model and input kind. This stream's state and spikes are untouched."""
+        if self.implementation != "fast":
+            return
+        h, w = min(8, self.profile.height), min(8, self.profile.width)
+        sim = SpikeSimulator(self.profile.window(0, 0, h, w), self.model_name, 0, implementation="fast",
+                             per_interval=self.schedule.per_interval)
+        rate = np.ones((2, h, w), np.float32)
+        list(sim.iter_feed_packed(rate, None if sim.schedule.per_interval else [0.0, 2 * self.interval_s]))
+        sim.finish_packed()
+
     def _check_shape(self, rate_e):
         rate_e = np.asarray(rate_e)
         if rate_e.ndim == 2:
@@ -71,13 +84,15 @@ class SpikeSimulator:
         out = self.model.run_block(self.schedule.rates(m0, m1), self.state, rng)
         return pack_frames(out) if packed else out
 
-    def _iter(self, rate_e, t_s, packed: bool) -> Iterator[np.ndarray]:
+    def _iter(self, rate_e, t_s, packed: bool, checked: bool = False, owned: bool = False) -> Iterator[np.ndarray]:
         if self.finished:
             raise InputError("this stream is finished; start a new SpikeSimulator")
         rate_e = self._check_shape(rate_e)
         # no copy of the caller's keyframes: the blocks they complete are simulated now, and the
         # few rows still needed afterwards are copied by detach() before control returns for good
-        self.schedule.add(rate_e, None if t_s is None else np.atleast_1d(np.asarray(t_s, np.float64)), copy=False)
+        # (not even those when the caller hands the array over: owned)
+        self.schedule.add(rate_e, None if t_s is None else np.atleast_1d(np.asarray(t_s, np.float64)), copy=False,
+                          check=not checked, owned=owned)
         try:
             while self.schedule.covered() >= self.n_done + self.block:
                 out = self._run(self.n_done, self.n_done + self.block, packed)
@@ -90,14 +105,21 @@ class SpikeSimulator:
         """Add rate data and yield spike blocks bool (B, H, W) as whole blocks become available."""
         return self._iter(rate_e, t_s, packed=False)
 
-    def iter_feed_packed(self, rate_e, t_s=None) -> Iterator[np.ndarray]:
+    def iter_feed_packed(self, rate_e, t_s=None, *, checked: bool = False, owned: bool = False
+                         ) -> Iterator[np.ndarray]:
         """Like :meth:`iter_feed`, yielding bit-packed blocks uint8 (B, ceil(H*W/8)).
 
         Frame layout (:func:`pack_frames`): image orientation, pixel ``p = r*W + c``
         in byte ``p // 8``, bit ``p % 8`` (``np.packbits(..., bitorder='little')``).
         The fast implementations produce this directly (8x less memory than bool).
+
+        For streaming readers that did the work already: ``checked=True`` skips the check that
+        every rate is finite and >= 0 (:func:`sensor.rates.check_rates`; the reader checked it,
+        naming its file and row); ``owned=True`` hands ``rate_e`` over (a float32 array the
+        caller never modifies again), so the keyframes still needed after this call are kept
+        without a copy. Neither changes the spikes.
         """
-        return self._iter(rate_e, t_s, packed=True)
+        return self._iter(rate_e, t_s, packed=True, checked=checked, owned=owned)
 
     def feed(self, rate_e, t_s=None) -> np.ndarray:
         """Add rate data; return the spikes bool (n, H, W) of the intervals completed by it."""

@@ -59,7 +59,11 @@ def count_bits(bits) -> int:
     if not bits.size:
         return 0
     if hasattr(np, "bitwise_count"):  # numpy >= 2.0: ~10-20x faster than unpackbits
-        return int(np.bitwise_count(bits).sum(dtype=np.int64))
+        # counted 8 bytes at a time (a uint64 view): 8x fewer counts and sums than byte by byte
+        flat = np.ascontiguousarray(bits).reshape(-1)
+        n8 = flat.size - flat.size % 8
+        whole = int(np.bitwise_count(flat[:n8].view(np.uint64)).sum(dtype=np.int64)) if n8 else 0
+        return whole + int(np.bitwise_count(flat[n8:]).sum(dtype=np.int64))
     return int(np.unpackbits(bits).sum(dtype=np.int64))
 
 
@@ -519,10 +523,16 @@ class SpikeWriter:
     ``.dat`` streams to a temporary file beside the target (bounded memory);
     ``.npz`` keeps the bit-packed blocks (1 bit per pixel-interval) in memory
     until close. On an exception inside a ``with`` block nothing is left behind.
+
+    ``background=True``: :meth:`write_packed` queues the block (at most two waiting) and a
+    writer thread counts, re-orders and writes it, so the writing overlaps whatever the
+    caller does next (the next block's simulation). The caller must not modify a block it
+    has handed over. ``n_intervals`` and ``n_spikes`` are final after :meth:`close`; an error
+    of the writer thread is raised by the next :meth:`write_packed` or by :meth:`close`.
     """
 
     def __init__(self, path, *, interval_s: float, model: str, profile_id: str, seed, source: str = "",
-                 implementation: str = "", extra: dict | None = None):
+                 implementation: str = "", extra: dict | None = None, background: bool = False):
         self.path = Path(path)
         self.kind = "dat" if self.path.suffix.lower() == ".dat" else "npz"
         if self.kind == "npz" and self.path.suffix.lower() != ".npz":
@@ -540,6 +550,37 @@ class SpikeWriter:
             self._ctx = atomic_path(self.path)
             self._tmp = self._ctx.__enter__()
             self._fh = open(self._tmp, "wb")
+        self._queue = self._thread = self._error = None
+        if background:
+            import queue
+            import threading
+            self._queue = queue.Queue(maxsize=2)
+            self._thread = threading.Thread(target=self._drain, name="r2s-write", daemon=True)
+            self._thread.start()
+
+    def _drain(self) -> None:
+        """Writer thread: write queued blocks until None; after an error, only empty the queue."""
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is None:
+                try:
+                    self._write_packed(*item)
+                except BaseException as exc:  # handed to the caller's thread by _raise_error
+                    self._error = exc
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            exc, self._error = self._error, None
+            raise exc
+
+    def _stop(self) -> None:
+        """Let the writer thread finish the queued blocks and end (no-op without one)."""
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
 
     def write(self, spikes) -> None:
         """Append bool spikes (n, H, W) in image orientation."""
@@ -552,6 +593,13 @@ class SpikeWriter:
         bits = np.asarray(bits, np.uint8)
         if bits.shape[0] == 0:
             return
+        if self._thread is not None:
+            self._raise_error()
+            self._queue.put((bits, shape))
+            return
+        self._write_packed(bits, shape)
+
+    def _write_packed(self, bits, shape) -> None:
         shape = tuple(int(x) for x in shape)
         if self.shape is None:
             self.shape = shape
@@ -565,6 +613,12 @@ class SpikeWriter:
             self._blocks.append(bits)
 
     def close(self) -> Path:
+        self._stop()
+        try:
+            self._raise_error()
+        except BaseException:
+            self.abort()
+            raise
         if self.kind == "dat":
             self._fh.close()
             self._ctx.__exit__(None, None, None)
@@ -577,8 +631,11 @@ class SpikeWriter:
                             implementation=m["implementation"], extra=m["extra"])
 
     def abort(self) -> None:
+        self._stop()
+        self._error = None
         if self.kind == "dat" and self._fh is not None:
             self._fh.close()
+            self._fh = None
             try:
                 self._ctx.__exit__(SpikeFileError, SpikeFileError("aborted"), None)
             except SpikeFileError:

@@ -50,7 +50,7 @@ def photons_per_joule(wavelength_nm):
     return 1.0 / photon_energy_j(wavelength_nm)
 
 
-def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s: float = INTERVAL_S):
+def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s: float = INTERVAL_S, *, out=None):
     """Convert focal-plane QE-weighted photon irradiance to photoelectrons per interval.
 
     Parameters
@@ -64,6 +64,9 @@ def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s
     interval_s : float
         Interval length T_r [s].
 
+    out : numpy.ndarray (float32), optional
+        Where to write the result (may be ``phi`` itself); a new array by default.
+
     Returns
     -------
     numpy.ndarray (float32), same shape as ``phi``
@@ -71,7 +74,13 @@ def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s
         = phi * pitch^2 * fill_factor * T_r.
     """
     scale = float(pixel_pitch_m) ** 2 * float(fill_factor) * float(interval_s)
-    return (np.asarray(phi, dtype=np.float64) * scale).astype(np.float32)
+    phi = np.asarray(phi)
+    if out is None:
+        out = np.empty(phi.shape, np.float32)
+    # each product in float64, rounded once to float32: one buffered pass, no float64 temporaries
+    # (``out`` may be ``phi`` itself when that is float32: converted in place)
+    np.multiply(phi, scale, out=out, dtype=np.float64, casting="same_kind")
+    return out if out.ndim else out[()]
 
 
 def rate_e_to_phi(rate_e, pixel_pitch_m: float, fill_factor: float, interval_s: float = INTERVAL_S):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import time
 import zipfile
 import zlib
@@ -56,7 +58,8 @@ def register(sub) -> None:
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator instead of the fast event-driven one")
     p.add_argument("--chunk", type=int, default=32, metavar="K",
-                   help="keyframes read per step (memory bound; the result does not depend on it; default 32)")
+                   help="keyframes read per step; a reader thread keeps about two simulator blocks of them read "
+                        "ahead, at most 256 MB (memory bound; the result does not depend on it; default 32)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p)
     p.set_defaults(func=run)
@@ -123,10 +126,11 @@ class _NpzMember:
 class RateSource:
     """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT.
 
-    Nothing is read whole: an ``.npy`` is read in row chunks at its data offset, an ``.npz`` member is decoded
-    chunk by chunk from the zip stream, and a frames folder's EXR files are decoded by a
-    reader thread one chunk ahead of the simulation (:meth:`chunks`), so decoding overlaps
-    the kernel (which releases the GIL). Memory is a few chunks, flat in duration.
+    Nothing is read whole: an ``.npy`` is memory-mapped and handed out in row chunks whose pages are
+    dropped again once used, an ``.npz`` member is decoded chunk by chunk from the zip stream, and a
+    frames folder's EXR files are read (the Phi channel only). A reader thread reads and checks the
+    next chunk while the kernel (which releases the GIL) simulates the current one (:meth:`chunks`).
+    Memory is a few chunks, flat in duration.
     """
 
     def __init__(self, path, profile_for_phi=None):
@@ -134,6 +138,7 @@ class RateSource:
         self.path = Path(path)
         self.kind = None
         self._member = None
+        self._mm = None
         self.rate = None
         if self.path.is_dir():
             from sensor.frames import read_frames
@@ -191,28 +196,56 @@ class RateSource:
             return self.n
         return n_intervals_spanned(self.t_s[0], self.t_s[-1], interval_s)
 
-    def _npy_rows(self, i: int, j: int) -> np.ndarray:
-        """Rows [i, j) of the .npy by plain file reads at the map's data offset (float32).
+    def _npy_map(self):
+        """A read-only memory map of the whole .npy file (made on first use)."""
+        if self._mm is None:
+            import mmap
+            with open(self.path, "rb") as fh:
+                self._mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+            if hasattr(self._mm, "madvise") and hasattr(mmap, "MADV_SEQUENTIAL"):
+                self._mm.madvise(mmap.MADV_SEQUENTIAL)  # read ahead: the rows are read once, in order
+        return self._mm
 
-        Private memory of one chunk, and no file-backed pages left mapped (reading through
-        the map would keep every page read in the process's resident set).
+    def _npy_offset(self, i: int) -> int:
+        """File offset [bytes] of row ``i`` of the .npy."""
+        m = self.rate
+        return m.offset + i * int(np.prod(m.shape[1:], dtype=np.int64)) * m.dtype.itemsize
+
+    def _npy_rows(self, i: int, j: int) -> np.ndarray:
+        """Rows [i, j) of the .npy as float32 (j - i, H, W).
+
+        A float32 C-ordered file is not copied: the rows are a view of its read-only memory map,
+        whose pages come straight from the page cache (several times faster than reading into
+        fresh memory, which must be faulted in and zeroed first), and :meth:`_release` drops them
+        from the process again once used, so the resident set stays at a few chunks whatever the
+        file's length. Other dtypes are converted (a copy of the chunk).
         """
         m = self.rate
         if not m.flags.c_contiguous:  # Fortran order: rows are not contiguous in the file
             return np.array(m[i:j], dtype=np.float32)
         row = int(np.prod(m.shape[1:], dtype=np.int64))
-        with open(self.path, "rb") as fh:
-            fh.seek(m.offset + i * row * m.dtype.itemsize)
-            out = np.fromfile(fh, dtype=m.dtype, count=(j - i) * row)
-        if out.size != (j - i) * row:
-            raise ValueError(f"truncated .npy: rows {i}..{j - 1} of {m.shape[0]}")
+        out = np.frombuffer(self._npy_map(), dtype=m.dtype, count=(j - i) * row, offset=self._npy_offset(i))
         return out.reshape((j - i,) + tuple(m.shape[1:])).astype(np.float32, copy=False)
+
+    def _release(self, i: int, j: int) -> None:
+        """Rows [i, j) are used: drop their pages from this process (.npy only). The data stays in the
+        file: a row still referenced is read again from the page cache if touched, unchanged."""
+        import mmap
+        if self._mm is None or not hasattr(mmap, "MADV_DONTNEED") or not hasattr(self._mm, "madvise"):
+            return
+        a = self._npy_offset(i) // mmap.PAGESIZE * mmap.PAGESIZE
+        b = len(self._mm) if j >= self.n else self._npy_offset(j) // mmap.PAGESIZE * mmap.PAGESIZE
+        if b > a:
+            self._mm.madvise(mmap.MADV_DONTNEED, a, b - a)
 
     def _read(self, profile, i: int, j: int) -> np.ndarray:
         from sensor import photoelectron_rate
         if self.kind == "frames":
-            return np.stack([photoelectron_rate(self.frames.read(q).phi, profile) for q in range(i, j)]).astype(
-                np.float32, copy=False)
+            # only the Phi channel is read (the E channel is not needed here); one conversion per chunk
+            phi = np.empty((j - i,) + self.shape, np.float32)
+            for q in range(i, j):
+                self.frames.read_phi(q, out=phi[q - i])  # checked: finite, >= 0, size and time as in frames.json
+            return photoelectron_rate(phi, profile, out=phi)
         from sensor.errors import InputError
         from sensor.rates import check_rates
         try:
@@ -226,42 +259,124 @@ class RateSource:
         check_rates(rate, path=self.path, offset=i)  # checked as it streams in: names the absolute index
         return rate
 
-    def chunks(self, profile, size: int, prefetch: bool = True):
-        """Yield (rate_e, t_s) chunks of ``size`` rows; the next chunk is read in a thread meanwhile."""
+    def chunks(self, profile, size: int, prefetch: int = 1):
+        """Iterator of (rate_e, t_s) chunks of ``size`` rows; with ``prefetch`` = n > 0 a reader thread keeps
+        the next n chunks read ahead, and starts on them at once (before the first ``next``).
+
+        Each chunk is checked (finite, >= 0; errors name the file and row) and never modified by this
+        source: a fresh array, or for a float32 .npy a view of the file's read-only memory map, whose
+        pages are dropped from the process once the consumer asks for the next chunk (they are read
+        again from the page cache if still touched). The consumer may keep a chunk
+        (``iter_feed_packed(owned=True)``).
+        """
         bounds = [(i, min(self.n, i + size)) for i in range(0, self.n, size)]
+        depth = int(prefetch)
+        if depth < 1 or len(bounds) < 2:
+            return self._chunks_plain(profile, bounds)
+        from collections import deque
+        from concurrent.futures import ThreadPoolExecutor
+        ex = ThreadPoolExecutor(1, thread_name_prefix="r2s-read")
+        futs = deque(ex.submit(self._read, profile, *b) for b in bounds[:depth])
+        return self._chunks_prefetched(profile, bounds, ex, futs, depth)
+
+    def _chunks_plain(self, profile, bounds):
         try:
-            if not prefetch or len(bounds) < 2:
-                for i, j in bounds:
-                    yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
-                return
-            from concurrent.futures import ThreadPoolExecutor
-            with ThreadPoolExecutor(1, thread_name_prefix="r2s-read") as ex:
-                fut = ex.submit(self._read, profile, *bounds[0])
-                for k, (i, j) in enumerate(bounds):
-                    rate = fut.result()
-                    fut = ex.submit(self._read, profile, *bounds[k + 1]) if k + 1 < len(bounds) else None
-                    yield rate, (None if self.t_s is None else self.t_s[i:j])
-                    del rate
+            for i, j in bounds:
+                yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
+                self._release(i, j)
         finally:
+            self.close()
+
+    def _chunks_prefetched(self, profile, bounds, ex, futs, depth):
+        try:
+            for k, (i, j) in enumerate(bounds):
+                rate = futs.popleft().result()
+                if k + depth < len(bounds):
+                    futs.append(ex.submit(self._read, profile, *bounds[k + depth]))
+                yield rate, (None if self.t_s is None else self.t_s[i:j])
+                del rate
+                self._release(i, j)
+        finally:
+            ex.shutdown(wait=True, cancel_futures=True)
             self.close()
 
     def close(self):
         if self._member is not None:
             self._member.close()
             self._member = None
+        if self._mm is not None:
+            try:
+                self._mm.close()
+            except BufferError:  # rows still referenced by the caller: the map closes with the last of them
+                pass
+            self._mm = None
 
 
 def run(args) -> int:
     from tqdm import tqdm
 
-    from sensor import SensorProfile, SpikeSimulator
     from sensor.spikefile import SpikeWriter
-
-    from render2spike.commands._common import check_output
-    from sensor.errors import InputError
 
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else print
+    with _start_up():
+        src, profile, sim, chunks = _prepare(args, say)
+    desc = sim.describe()
+    extra = {"input_kind": src.kind, "simulator": desc}
+    total = src.n_intervals(profile.interval_s)
+    with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,
+                     seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
+                     extra=extra, background=True) as writer, \
+            tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
+        for rate, t in chunks:
+            # the reader checked the rates (naming file and row) and hands each fresh chunk over
+            for bits in sim.iter_feed_packed(rate, t, checked=True, owned=True):  # 1 bit per pixel-interval
+                writer.write_packed(bits, profile.shape)  # counted, re-ordered and written by a writer thread
+                bar.update(bits.shape[0])
+        last = sim.finish_packed()
+        writer.write_packed(last, profile.shape)
+        bar.update(last.shape[0])
+    dt = time.perf_counter() - t0
+    n = writer.n_intervals
+    rate_hz = writer.n_spikes / max(n * profile.height * profile.width, 1) / profile.interval_s
+    say(f"wrote {args.out}: {n} intervals ({n * profile.interval_s:.4f} s of camera time), {profile.height}x"
+        f"{profile.width}, model {args.model} ({sim.implementation}), seed {args.seed}; mean spike rate "
+        f"{rate_hz:.1f} Hz per pixel; {dt:.1f} s wall")
+    return 0
+
+
+def read_ahead(src, sim, size: int, max_bytes: int = 256 << 20) -> int:
+    """Chunks of ``size`` rows to keep read ahead: about two simulator blocks' worth of keyframes (with one
+    chunk ahead, a chunk smaller than a block that completes no block leaves the kernel waiting for the
+    next read), at most ``max_bytes`` of them; one for per-interval rates (a chunk is whole blocks)."""
+    if src.per_interval or src.n < 2:
+        return 1
+    spacing_s = (src.t_s[-1] - src.t_s[0]) / (src.n - 1)  # mean keyframe spacing
+    per_block = sim.block * sim.interval_s / spacing_s
+    row_bytes = 4 * src.shape[0] * src.shape[1]
+    return int(max(1, min(math.ceil(2 * per_block / size), max_bytes // max(size * row_bytes, 1))))
+
+
+@contextlib.contextmanager
+def _start_up():
+    """No cyclic garbage collection while the command starts: imports and numba's cache load make
+    only long-lived objects, and the collector's passes over them cost ~0.15 s of start-up."""
+    import gc
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+def _prepare(args, say):
+    """Open INPUT and the profile, make the simulator, start reading, load the kernels."""
+    from sensor import SensorProfile, SpikeSimulator
+    from sensor.errors import InputError
+
+    from render2spike.commands._common import check_output
     check_output(args.out, inputs=[args.input], overwrite=args.overwrite, say=say)
     src = RateSource(args.input)
     profile = fit_profile(SensorProfile.load(args.profile), src.shape, say)
@@ -280,28 +395,11 @@ def run(args) -> int:
         raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
                          "(need at least two keyframes one interval apart)", path=args.input,
                          field="frames" if src.kind == "frames" else "t_s")
-    desc = sim.describe()
-    extra = {"input_kind": src.kind, "simulator": desc}
-    with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,
-                     seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
-                     extra=extra) as writer, \
-            tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
-        size = max(1, args.chunk)
-        if src.per_interval:
-            # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
-            # whole blocks (aligned): the schedule then takes views of them and never copies rows
-            size = sim.block * -(-size // sim.block)
-        for rate, t in src.chunks(profile, size):
-            for bits in sim.iter_feed_packed(rate, t):  # bit-packed blocks: 1 bit per pixel-interval
-                writer.write_packed(bits, profile.shape)
-                bar.update(bits.shape[0])
-        last = sim.finish_packed()
-        writer.write_packed(last, profile.shape)
-        bar.update(last.shape[0])
-    dt = time.perf_counter() - t0
-    n = writer.n_intervals
-    rate_hz = writer.n_spikes / max(n * profile.height * profile.width, 1) / profile.interval_s
-    say(f"wrote {args.out}: {n} intervals ({n * profile.interval_s:.4f} s of camera time), {profile.height}x"
-        f"{profile.width}, model {args.model} ({sim.implementation}), seed {args.seed}; mean spike rate "
-        f"{rate_hz:.1f} Hz per pixel; {dt:.1f} s wall")
-    return 0
+    size = max(1, args.chunk)
+    if src.per_interval:
+        # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
+        # whole blocks (aligned): the schedule then takes views of them and never copies rows
+        size = sim.block * -(-size // sim.block)
+    chunks = src.chunks(profile, size, read_ahead(src, sim, size))  # the reader thread starts now ...
+    sim.warm_up()  # ... while numba loads the kernels from its cache here
+    return src, profile, sim, chunks

@@ -127,6 +127,6 @@ def test_network_with_head_keeps_the_trunk_and_head_only_training_changes_only_t
 def test_head_config_round_trips_and_checks_widths():
     cfg = RSIRConfig.tiny(head=True, head_sigmas=[0, 1.5])
     assert cfg.head_sigmas == (0.0, 1.5)
-    assert RSIRConfig.from_dict(cfg.to_dict()) == cfg
+    assert RSIRConfig.from_dict(cfg.to_dict()) == cfg and cfg.to_dict()["head_sigmas"] == [0.0, 1.5]
     with pytest.raises(InputError, match="head_sigmas"):
         RSIRConfig.tiny(head=True, head_sigmas=(-1.0,))

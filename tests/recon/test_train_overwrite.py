@@ -14,14 +14,23 @@ def _cli(*argv):
     return main([str(a) for a in argv])
 
 
-@pytest.mark.torch
-def test_train_overwrite(tmp_path, capsys):
+#: a network small enough for a test
+NET = ["--width", 8, "--res-blocks", 1, "--attn-depth", 1, "--heads", 1, "--attn-window", 4, "--quiet"]
+
+
+def _tiny_data(tmp_path) -> str:
+    """A DAVIS-layout data spec with one 8x8 training sequence."""
     root = make_davis_like(tmp_path / "davis", ["tr-a", "te-a"], n_frames=3, size=(8, 8), seed=4)
     split = tmp_path / "split.json"
     split.write_text(json.dumps({"train": ["tr-a"], "test": ["te-a"]}))
-    data = f"davis:{root}:split_file={split}:res=8x8:warmup=8:frame_stride=2:lux=100"
+    return f"davis:{root}:split_file={split}:res=8x8:warmup=8:frame_stride=2:lux=100"
+
+
+@pytest.mark.torch
+def test_train_overwrite(tmp_path, capsys):
+    data = _tiny_data(tmp_path)
     run = tmp_path / "run"
-    net = ["--width", 8, "--res-blocks", 1, "--attn-depth", 1, "--heads", 1, "--attn-window", 4, "--quiet"]
+    net = NET
     assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--batch-size", 1, *net) == 0
     assert _cli("train", "--data", data, "--out", run, "--steps", 1, "--batch-size", 1, *net) == 2
     assert "--resume" in capsys.readouterr().err
@@ -38,11 +47,8 @@ def test_train_overwrite(tmp_path, capsys):
 def test_train_head_from_init_on_the_cli(tmp_path, capsys):
     """--init CKPT --head --train-only head: the checkpoint's network is kept, a head is added and trained."""
     from recon.nets import load_checkpoint
-    root = make_davis_like(tmp_path / "davis", ["tr-a", "te-a"], n_frames=3, size=(8, 8), seed=4)
-    split = tmp_path / "split.json"
-    split.write_text(json.dumps({"train": ["tr-a"], "test": ["te-a"]}))
-    data = f"davis:{root}:split_file={split}:res=8x8:warmup=8:frame_stride=2:lux=100"
-    net = ["--width", 8, "--res-blocks", 1, "--attn-depth", 1, "--heads", 1, "--attn-window", 4, "--quiet"]
+    data = _tiny_data(tmp_path)
+    net = NET
     assert _cli("train", "--data", data, "--out", tmp_path / "a", "--steps", 1, "--batch-size", 1, *net) == 0
     base, _ = load_checkpoint(tmp_path / "a" / "model.pt")
     assert base.head is None
