@@ -564,10 +564,10 @@ class RSIRConfig:
     picks, per pixel, softmax weights over the network's image and the classic
     estimates of :func:`classic_bank` (the linearised TFP over all windows
     smoothed by Gaussians of ``head_sigmas`` pixels, 0 = unsmoothed); the
-    output is their weighted sum. The network can then never be forced below
-    the classic estimates it sees, and it can smooth flat regions and keep
-    edges (an adaptive filter) where the fixed-width classic baseline must
-    choose one width per image (see docs/recon.md, "The output head").
+    output is their weighted sum plus a learned correction. The network can
+    fall back on the classic estimates it sees, and it can smooth flat regions
+    and keep edges (an adaptive filter) where the fixed-width classic baseline
+    must choose one width per image (see docs/recon.md, "The output head").
     ``head_width`` channels in its CNN; ``head_route_weight`` weighs its
     routing term in the loss (:func:`head_routing_loss`).
     """

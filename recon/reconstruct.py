@@ -37,6 +37,29 @@ def read_recording(path, *, layout: str | None = None, height: int | None = None
     return read_spikes_with_meta(path, layout=layout, height=height, width=width, drop_columns=drop_columns)
 
 
+def recording_profile(spikes, source="the recording"):
+    """The sensor assumed for a recording that comes without a profile (``--profile`` not given).
+
+    :func:`recon.datasets.uniform_profile` (vidar-like threshold, refractory
+    time and reset, the mean dark rate, no PRNU) with the hot pixels found in
+    the recording itself (:func:`sensor.calibration.scene_hot_pixels`), so
+    the dead-time correction and the network's output head leave them out.
+    Warns, naming how many were found: a calibrated profile is better.
+    """
+    import warnings
+
+    from sensor.calibration import scene_hot_pixels
+
+    from .datasets import uniform_profile
+    s = np.asarray(spikes)
+    hot = scene_hot_pixels(s)
+    prof = uniform_profile(s.shape[1], s.shape[2]).replace(hot_mask=hot)
+    warnings.warn(f"{source}: no --profile given; assuming a uniform vidar-like sensor, with {int(hot.sum())} "
+                  f"hot pixel(s) found as isolated outliers of the recording's spike counts (pass --profile "
+                  f"with a calibrated profile, see render2spike calibrate)", stacklevel=2)
+    return prof
+
+
 def fit_windows(T: int, n_windows: int | None, window: int | None, trained: tuple[int, int]) -> tuple[int, int]:
     """Windows (N, L) for a recording of ``T`` intervals: given values, else the trained ones shortened to fit.
 
@@ -81,6 +104,8 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
     if profile:
         from .datasets import resolve_profile
         prof = resolve_profile(profile, H, W)
+    if prof is None and method in ("tfp-dt", "tfp-dt-denoised", "rsir"):
+        prof = recording_profile(spikes, source=spikes_path)
     model = None
     if method == "rsir":
         from .nets import load_checkpoint
@@ -91,9 +116,6 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
     elif method in ("tfp", "tfp-dt", "tfp-dt-denoised"):
         window = int(window) if window else min(RSIR_N_WINDOWS * RSIR_WINDOW, T)
         need = window
-        if method != "tfp" and prof is None:
-            from .datasets import uniform_profile
-            prof = uniform_profile(H, W)
     else:
         need = 1
     if T < need:
@@ -123,8 +145,8 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
             import torch
             w = tfp_windows(spikes, N, Lw, center=c)
             dev = next(model.parameters()).device
-            from .datasets import sensor_maps, uniform_profile
-            maps = torch.from_numpy(sensor_maps(prof if prof is not None else uniform_profile(H, W))[None]).to(dev)
+            from .datasets import sensor_maps
+            maps = torch.from_numpy(sensor_maps(prof)[None]).to(dev)
             img = model.reconstruct(torch.from_numpy(w[None]).to(dev), maps)[0, 0].cpu().numpy()
         img = np.asarray(img, np.float32)
         name = f"{stem}_{method}_{c:07d}"

@@ -99,7 +99,7 @@ def read_loss_csv(path) -> list[dict]:
         return []
     with path.open(newline="") as f:
         try:
-            return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+            return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]
         except (TypeError, ValueError, csv.Error) as exc:
             raise InputError(f"the loss log is corrupt ({exc}); delete it to resume without the earlier curve",
                              path=path) from exc
@@ -111,7 +111,8 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
     w = csv.DictWriter(buf, fieldnames=LOSS_FIELDS)
     w.writeheader()
     for r in rows:
-        w.writerow({k: (int(r[k]) if k in ("step", "epoch") else f"{r.get(k, 0.0):.6g}") for k in LOSS_FIELDS})
+        w.writerow({k: (int(r[k]) if k in ("step", "epoch") else (f"{r[k]:.6g}" if k in r else ""))
+                    for k in LOSS_FIELDS})
     write_text_atomic(out_dir / "loss.csv", buf.getvalue())
     if not rows:
         return
@@ -121,7 +122,9 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
     steps = [r["step"] for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
     ax.plot(steps, [r["loss"] for r in rows], label="total (mean over steps)", lw=1)
-    ax.plot(steps, [r["refine"] for r in rows], label="refine L1", lw=1)
+    ax.plot(steps, [r["refine"] for r in rows], label="refine L1 (mean over steps)", lw=1)
+    if all("head" in r for r in rows):
+        ax.plot(steps, [r["head"] for r in rows], label="head L1 (the output)", lw=1)
     ax.set_xlabel("optimiser step")
     ax.set_ylabel("loss (scaled units)")
     ax.set_yscale("log")
@@ -216,6 +219,9 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         raise InputError(f"the data give {dataset.n_windows} windows but the network takes "
                          f"{model.config.n_windows}", field="--data")
     head_only = cfg.train_only == "head"
+    if head_only and not (init_checkpoint or resume):
+        raise InputError("train_only='head' keeps the rest of the network as it is: start from a trained one "
+                         "(init_checkpoint, CLI --init CKPT --head)", field="--train-only")
     if head_only and model.head is None:
         raise InputError("train_only='head' needs a network with an output head (add one with add_head / "
                          "--head when starting from --init)", field="--train-only")

@@ -95,6 +95,12 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    if issubclass(category, UserWarning) and category.__module__ == "builtins":
+        return f"render2spike: warning: {message}\n"
+    return f"{filename}:{lineno}: {category.__name__}: {message}\n"
+
+
 def main(argv=None) -> int:
     from_command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -105,6 +111,9 @@ def main(argv=None) -> int:
         return 1
     import signal
     import threading
+    import warnings
+    # the project's own warnings (UserWarning) as one line each, like its errors
+    warnings.formatwarning = _one_line_warning
     old_term = None
     if threading.current_thread() is threading.main_thread():
         old_term = signal.signal(signal.SIGTERM, _on_sigterm)

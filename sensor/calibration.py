@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CalibrationError
+from .errors import CalibrationError, InputError
 from .fileio import provenance, write_json_atomic
 from .profile import SensorProfile
 from .spikefile import read_spikes
@@ -421,3 +421,34 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
         fig.savefig(tmp, dpi=80)
     plt.close(fig)
     return [jpath, ppath]
+
+
+def scene_hot_pixels(spikes, *, size: int = 5, factor: float = 4.0, z: float = 8.0, isolation: float = 2.0):
+    """Hot pixels of a scene recording without dark frames: isolated spatial outliers of the spike count.
+
+    For real recordings that come without a calibrated profile. ``spikes``
+    bool (T, H, W); ``n`` = each pixel's spike count over the T intervals,
+    ``m`` = the median count of its ``size`` x ``size`` neighbourhood (at least
+    1). A pixel is hot when all of:
+
+    * ``n > factor * m`` (far above its surroundings),
+    * ``n - m > z * sqrt(m)`` (significant: a Poisson count of mean ``m`` has
+      standard deviation ``sqrt(m)``; the crossing reset's counts vary less, so
+      this is conservative),
+    * ``n > isolation * max(8 neighbours)`` (a point: the pixels along a thin
+      bright line or an edge have bright neighbours too).
+
+    A single-pixel bright point of the scene (a star, a specular glint that
+    does not move) passes the same tests and is taken for a hot pixel.
+    Returns bool (H, W).
+    """
+    from scipy.ndimage import maximum_filter, median_filter
+    s = np.asarray(spikes)
+    if s.ndim != 3:
+        raise InputError(f"spikes must be (T, H, W); got shape {s.shape}", field="spikes")
+    n = s.sum(axis=0, dtype=np.int64).astype(np.float64)
+    m = np.maximum(median_filter(n, size=int(size), mode="nearest"), 1.0)
+    fp = np.ones((3, 3), bool)
+    fp[1, 1] = False
+    neighbours = maximum_filter(n, footprint=fp, mode="nearest")
+    return (n > factor * m) & (n - m > z * np.sqrt(m)) & (n > isolation * neighbours)

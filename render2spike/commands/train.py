@@ -124,9 +124,13 @@ def run(args) -> int:
     if args.init and given:
         raise InputError(f"--init takes the network layout from the checkpoint; drop {', '.join(given)}",
                          field="--init")
-    if args.resume and (given or args.head):
-        raise InputError(f"--resume continues the stored network; drop {', '.join(given + ['--head'] * args.head)}",
-                         field="--resume")
+    if args.resume and (given or args.head or args.train_only):
+        extra = ["--head"] * args.head + ["--train-only"] * bool(args.train_only)
+        raise InputError(f"--resume continues the stored network and training settings; drop "
+                         f"{', '.join(given + extra)}", field="--resume")
+    if args.train_only and not args.init:
+        raise InputError("--train-only head keeps the rest of the network as it is: start from a trained one with "
+                         "--init CKPT --head", field="--train-only")
     ds = build_datasets(args.data, split="train", model=args.noise_model, seed=args.seed)
     if args.overwrite:
         clear_run(Path(args.out))

@@ -40,9 +40,14 @@ def test_gaussian_blur_function_and_module_agree():
 def test_crossing_light_matches_the_exact_dead_time_correction():
     """The head's closed form against recon.classic.deadtime_correct (crossing reset, vidar threshold).
 
-    Left out by the closed form: the refractory loss (f = 1/250: 0.4 %) and the
-    one-spike-per-interval read-out (under 1 % up to 0.9 spikes per interval):
-    relative error below 2 % where the rate is at least twice the dark rate.
+    What the closed form leaves out, as a relative error budget: the refractory
+    loss (fraction f = 1/250 of an interval after each spike: at most f), the
+    one-spike-per-interval read-out (``1 - r`` of the next crossing's interval
+    is free, two crossings in one interval need ISIs below 1: at r <= 0.9 and
+    k = 2000 electrons, under 1 %), and the randomness of the light crossing
+    time (Gamma(k) with CV 1/sqrt(k) = 2.2 %), which enters the dark-event
+    term at first order in mu: at most mu. Tolerance f + 0.01 + mu where the
+    rate is at least twice the dark rate.
     """
     r = np.linspace(0.005, 0.9, 60)
     for mu in (0.0, 0.0047, 0.02):
@@ -51,7 +56,8 @@ def test_crossing_light_matches_the_exact_dead_time_correction():
         exact = deadtime_correct(r[None].astype(np.float32), prof)[0] / prof.threshold_e
         approx = crossing_light(torch.tensor(r), torch.tensor(mu, dtype=torch.float64)).numpy()
         use = r >= 2 * mu
-        np.testing.assert_allclose(approx[use], exact[use], rtol=0.02)
+        f = float(prof.refractory_fraction.max())
+        np.testing.assert_allclose(approx[use], exact[use], rtol=f + 0.01 + mu)
         assert np.all(approx[r <= mu] == 0.0)  # at or below the dark floor: no light
 
 
@@ -72,9 +78,15 @@ def test_classic_bank_width_zero_is_the_linearised_tfp_and_leaves_hot_pixels_out
     expect = crossing_light(r.double(), torch.from_numpy(mu).double()).numpy() / g
     keep = hot == 0
     np.testing.assert_allclose(bank[0, 0].numpy()[keep], expect[keep], rtol=1e-5)
-    # the hot pixel takes its neighbours' level in every candidate, never its own 0.95
-    for c in range(2):
-        assert bank[0, c, 5, 6] < 0.5
+    # the hot pixel is left out of every candidate: no output depends on its own rate
+    other = windows.clone()
+    other[0, :, 5, 6] = 0.01
+    torch.testing.assert_close(classic_bank(other, maps, (0.0, 2.0)), bank)
+    no_hot = maps.clone()
+    no_hot[:, 2] = 0.0  # without the indicator it does (the test can fail)
+    assert not torch.allclose(classic_bank(other, no_hot, (0.0, 2.0)), classic_bank(windows, no_hot, (0.0, 2.0)))
+    # two-channel maps (older callers): no hot pixels
+    torch.testing.assert_close(classic_bank(windows, maps[:, :2], (0.0, 2.0)), classic_bank(windows, no_hot, (0.0, 2.0)))
     # smoothing a constant excess gives the constant back
     const = torch.full((1, 3, H, W), 0.2)
     flat = classic_bank(const, None, (0.0, 3.0))
@@ -130,3 +142,26 @@ def test_head_config_round_trips_and_checks_widths():
     assert RSIRConfig.from_dict(cfg.to_dict()) == cfg and cfg.to_dict()["head_sigmas"] == [0.0, 1.5]
     with pytest.raises(InputError, match="head_sigmas"):
         RSIRConfig.tiny(head=True, head_sigmas=(-1.0,))
+
+
+def test_head_runs_without_maps_and_checkpoints_from_before_the_head_still_load(tmp_path):
+    from recon.nets import load_checkpoint, save_checkpoint
+    from recon.train import _with_head
+    net = _with_head(_tiny(), seed=0, device="cpu").eval()
+    windows = torch.rand(1, 10, 16, 16, generator=torch.Generator().manual_seed(2)) * 0.3
+    with torch.no_grad():
+        y = net.reconstruct(windows, None)  # unknown sensor: no dark, gain 1, no hot pixels
+    assert y.shape == (1, 1, 16, 16) and torch.isfinite(y).all()
+    # a checkpoint written before the head existed: its config has none of the head_* keys
+    base = _tiny()
+    path = save_checkpoint(tmp_path / "old.pt", base)
+    ck = torch.load(path, weights_only=True)
+    for key in ("head", "head_sigmas", "head_width", "head_route_weight"):
+        ck["config"].pop(key)
+    torch.save(ck, path)
+    model, _ = load_checkpoint(path)
+    assert model.head is None
+    maps3 = torch.from_numpy(np.stack([np.full((16, 16), 0.004), np.ones((16, 16)), np.zeros((16, 16))])[None]
+                             .astype(np.float32))
+    with torch.no_grad():  # the third (hot-pixel) map channel is ignored by a network without a head
+        torch.testing.assert_close(model.reconstruct(windows, maps3), base.eval().reconstruct(windows, maps3[:, :2]))

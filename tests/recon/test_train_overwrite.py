@@ -65,3 +65,19 @@ def test_train_head_from_init_on_the_cli(tmp_path, capsys):
     assert "output head" in capsys.readouterr().err
     assert _cli("train", "--data", data, "--out", tmp_path / "b", "--steps", 3, "--resume", "--head", "--quiet") == 2
     assert "--head" in capsys.readouterr().err
+    assert _cli("train", "--data", data, "--out", tmp_path / "b", "--steps", 3, "--resume", "--train-only", "head",
+                "--quiet") == 2
+    assert "--train-only" in capsys.readouterr().err
+    # a head alone on an untrained network is refused; resuming the head-only run works and keeps it head-only
+    assert _cli("train", "--data", data, "--out", tmp_path / "d", "--steps", 1, "--head", "--train-only", "head",
+                "--quiet", *NET[:-1]) == 2
+    assert "--init" in capsys.readouterr().err
+    assert _cli("train", "--data", data, "--out", tmp_path / "b", "--steps", 3, "--resume", "--quiet") == 0
+    resumed, ck3 = load_checkpoint(tmp_path / "b" / "model.pt")
+    assert ck3["step"] == 3 and ck3["train"]["train_only"] == "head"
+    for k, v in base.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[k], v)
+    # a run without a head leaves the head columns of its loss log empty (not 0)
+    row = (tmp_path / "a" / "loss.csv").read_text().splitlines()[1].split(",")
+    header = (tmp_path / "a" / "loss.csv").read_text().splitlines()[0].split(",")
+    assert row[header.index("head")] == "" and row[header.index("refine")] != ""
