@@ -202,7 +202,8 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                              "another --out", path=out_dir)
         if init_checkpoint:
             model, _ = load_checkpoint(init_checkpoint, device)
-            if model.config.normalise == "fixed":  # adopt the new data's light level (the weights stay)
+            if model.config.normalise == "fixed" and cfg.train_only != "head":
+                # adopt the new data's light level (the weights stay); not when the network is to stay as it is
                 model.config.intensity_scale = estimate_intensity_scale(dataset)
             if add_head and model.head is None:  # the checkpoint's network plus a new output head
                 model = _with_head(model, cfg.seed, device)
