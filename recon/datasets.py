@@ -591,7 +591,8 @@ class SDMDDataset(_Base):
 
     ``profile`` (a calibrated profile of the camera) supplies the sensor maps
     and the dead-time-corrected TFP; without it both use a uniform sensor
-    (:func:`uniform_profile`: the mean vidar dark rate, gain 1, no hot pixels).
+    (:func:`uniform_profile`: the mean vidar dark rate, gain 1) with the hot
+    pixels found in the recording (:func:`recon.reconstruct.recording_profile`).
     """
 
     kind = "sdmd"
@@ -663,15 +664,21 @@ class SDMDDataset(_Base):
         else:
             factor = float(tfp(allspikes).mean()) / max(float(ref.mean()), 1e-12)
         prof = None if self.profile_spec in (None, "") else resolve_profile(self.profile_spec, H, Wd, self.seed)
-        maps = sensor_maps(prof if prof is not None else uniform_profile(H, Wd))
+        if prof is None:  # the uniform sensor with the hot pixels found in the recording (docs/recon.md)
+            from .reconstruct import recording_profile
+            prof = recording_profile(allspikes, warn=False)
+            given = False
+        else:
+            given = True
+        maps = sensor_maps(prof)
         c_local = c - start
         windows = tfp_windows(spikes, self.n_windows, self.window, center=c_local)
         target = (ref * np.float32(factor))[None].astype(np.float32)
         return Sample(windows=windows, target=target, maps=maps,
                       spikes=spikes if self.include_spikes else None, center=c_local,
-                      profile=prof or uniform_profile(H, Wd), name=scene,
+                      profile=prof, name=scene,
                       meta={"scene": scene, "lux": meta.get("lux"), "spikes_per_ref_unit": factor,
-                            "profile_given": prof is not None, "window": self.window, "n_windows": self.n_windows})
+                            "profile_given": given, "window": self.window, "n_windows": self.n_windows})
 
 
 class PairsDataset(SDMDDataset):

@@ -422,12 +422,13 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -
     excess over each pixel's dark-event probability smoothed by a Gaussian of
     each width in ``sigmas`` [pixels] with hot pixels left out (normalised
     convolution, as :func:`recon.baselines.smooth_rate`; width 0 keeps each
-    pixel's own value, hot pixels take their neighbours' at 1 pixel), clipped
-    at zero, divided by ``1 - p_dark`` and the PRNU gain. For the crossing
-    reset below about 0.9 spikes per interval this is the dead-time-corrected
-    TFP of :func:`recon.baselines.tfp_dt_denoised` (the read-out is linear
-    there); ``maps`` (B, >= 2, H, W) = dark probability, PRNU gain and, as a
-    third channel, the hot-pixel indicator (:func:`recon.datasets.sensor_maps`);
+    pixel's own value, hot pixels take their neighbours' at 1 pixel), the
+    dark level added back and the rate inverted to light with
+    :func:`crossing_light`, divided by the PRNU gain. Below about 0.9 spikes
+    per interval this is, within ``f + 1 % + mu``, the dead-time-corrected TFP
+    of :func:`recon.baselines.tfp_dt_denoised` for the crossing reset.
+    ``maps`` (B, >= 2, H, W) = dark probability, PRNU gain and, as a third
+    channel, the hot-pixel indicator (:func:`recon.datasets.sensor_maps`);
     None: no dark, gain 1, no hot pixels.
     """
     _check_4d(windows, "windows")
@@ -825,7 +826,8 @@ def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
     Per step: |refine - y| + |fusion - y| + |denoise - y| + sum over the four
     Haar bands of |denoise_band - y_band| + nim_loss_weight * |nim - y|,
     each a mean over pixels; with an output head, plus |head - y| (the final
-    image) and ``head_route_weight`` x :func:`head_routing_loss`. ``head_only``: the head's term alone (training the head on a fixed
+    image) and ``head_route_weight`` x :func:`head_routing_loss`.
+    ``head_only``: the head's terms alone (training the head on a fixed
     network). Returns (loss, dict of the mean components).
     """
     _check_4d(target, "target", channels=1)

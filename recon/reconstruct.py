@@ -37,14 +37,14 @@ def read_recording(path, *, layout: str | None = None, height: int | None = None
     return read_spikes_with_meta(path, layout=layout, height=height, width=width, drop_columns=drop_columns)
 
 
-def recording_profile(spikes, source="the recording"):
+def recording_profile(spikes, source="the recording", warn: bool = True):
     """The sensor assumed for a recording that comes without a profile (``--profile`` not given).
 
     :func:`recon.datasets.uniform_profile` (vidar-like threshold, refractory
     time and reset, the mean dark rate, no PRNU) with the hot pixels found in
     the recording itself (:func:`sensor.calibration.scene_hot_pixels`), so
     the dead-time correction and the network's output head leave them out.
-    Warns, naming how many were found: a calibrated profile is better.
+    Warns (unless ``warn=False``), naming how many were found: a calibrated profile is better.
     """
     import warnings
 
@@ -54,9 +54,10 @@ def recording_profile(spikes, source="the recording"):
     s = np.asarray(spikes)
     hot = scene_hot_pixels(s)
     prof = uniform_profile(s.shape[1], s.shape[2]).replace(hot_mask=hot)
-    warnings.warn(f"{source}: no --profile given; assuming a uniform vidar-like sensor, with {int(hot.sum())} "
-                  f"hot pixel(s) found as isolated outliers of the recording's spike counts (pass --profile "
-                  f"with a calibrated profile, see render2spike calibrate)", stacklevel=2)
+    if warn:
+        warnings.warn(f"{source}: no --profile given; assuming a uniform vidar-like sensor, with {int(hot.sum())} "
+                      f"hot pixel(s) found as isolated outliers of the recording's spike counts (pass --profile "
+                      f"with a calibrated profile, see render2spike calibrate)", stacklevel=2)
     return prof
 
 
