@@ -32,15 +32,16 @@ def test_matrix_of_train_and_test_models(spec, tmp_path):
               width=8, warmup=64, stride=96, threads=1, progress=False, log=lambda *a: None)
     res = run_generalisation_study(spec, tmp_path, **kw)
     m = res["matrix"]
-    # 2 networks + the tfp-dt baseline, each on 3 test models
-    assert len(m) == 3 * 3 and {r["test_model"] for r in m} == {"ideal", "isi", "elssim"}
+    # 2 networks + the default baselines (tfp-dt and the strongest classic, tfp-dt-denoised), each on 3 test models
+    assert len(m) == 4 * 3 and {r["test_model"] for r in m} == {"ideal", "isi", "elssim"}
+    assert {r["method"] for r in m} >= {"TFP dead-time corrected", "TFP-DT + Gaussian (tuned)"}
     assert all(r["n_items"] == m[0]["n_items"] > 1 and np.isfinite(r["psnr_db"]) for r in m)
     md = (tmp_path / "matrix.md").read_text()
     assert "| net trained on elssim |" in md and "±" in md
     assert (tmp_path / "heatmap.png").stat().st_size > 1000
     # the baseline sees the same test items for every model: same frames, so the same targets
     per_item = (tmp_path / "per_item.csv").read_text().splitlines()
-    assert len(per_item) == 1 + 9 * m[0]["n_items"]
+    assert len(per_item) == 1 + 12 * m[0]["n_items"]
     # a second run reuses the trained networks
     mtime = (tmp_path / "nets" / "ideal" / "model.pt").stat().st_mtime_ns
     res2 = run_generalisation_study(spec, tmp_path, **kw)

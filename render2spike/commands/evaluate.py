@@ -23,7 +23,7 @@ def register(subparsers) -> None:
         epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--data", required=True,
                    help="data spec KIND:PATH[,PATH...][:key=value...] (split=test by default; see docs/recon.md)")
-    p.add_argument("--methods", default="tfp,tfi",
+    p.add_argument("--methods", default="tfp,tfi,tfp-dt,tfp-dt-denoised",
                    help="comma-separated: tfp, tfp:N, tfi, tfp-dt, tfp-dt-denoised (the strong classic baseline: "
                         "width tuned per light level on training data), tfp-dt-denoised:SIGMA, rsir:CKPT[=LABEL]")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],

@@ -56,9 +56,10 @@ def register(sub) -> None:
 def _common(p, window=320):
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty output folder")
-    p.add_argument("--methods", default="tfp,tfp-dt", metavar="M1,M2",
+    p.add_argument("--methods", default="tfp,tfp-dt,tfp-dt-denoised", metavar="M1,M2",
                    help="reconstructions (recon's registry: tfp, tfp:N, tfi, tfp-dt, rsir:CKPT, ...; default "
-                        "tfp,tfp-dt); the noise-free window average is always added")
+                        "tfp,tfp-dt,tfp-dt-denoised: the strongest classic estimate is always in the table); the "
+                        "noise-free window average is always added")
     p.add_argument("--seeds", type=_ints, default=[0, 1, 2], metavar="S1,S2",
                    help="simulation seeds; error bars are the spread of the per-seed means (default 0,1,2)")
     p.add_argument("--window", type=int, default=window, help=f"reconstruction window [intervals] (default {window})")
@@ -163,8 +164,8 @@ examples:
                    "follows the profile's reset; default ideal,isi,elssim:interval,elssim:crossing)")
     p.add_argument("--test-models", type=_words, default=None, metavar="M1,M2",
                    help="test data models (default: the training models)")
-    p.add_argument("--baselines", default="tfp-dt", metavar="M1,M2",
-                   help="classic methods scored on the same test items (default tfp-dt; '' for none)")
+    p.add_argument("--baselines", default="tfp-dt,tfp-dt-denoised", metavar="M1,M2",
+                   help="classic methods scored on the same test items (default tfp-dt,tfp-dt-denoised; '' for none)")
     p.add_argument("--reuse", action="append", default=[], metavar="MODEL=CKPT",
                    help="use this checkpoint for MODEL instead of training (repeatable)")
     p.add_argument("--steps", type=int, default=200, help="training steps per network (default 200)")

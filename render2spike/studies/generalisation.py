@@ -65,7 +65,7 @@ def _dataset(folders, model_spec, profile, crop, seed, warmup, stride=None, incl
 
 
 def run_generalisation_study(data, out, *, train_models=("ideal", "isi", "elssim"), test_models=None,
-                             baselines="tfp-dt", reuse=(), steps=200, batch_size=4, size="tiny", width=None,
+                             baselines="tfp-dt,tfp-dt-denoised", reuse=(), steps=200, batch_size=4, size="tiny", width=None,
                              crop=None, test_fraction=0.25, profile="vidar-default", seed=0, threads=None,
                              workers=0, warmup=512, stride=64, progress=True, log=print) -> dict:
     """Run the study (see the module docstring); writes matrix.csv, matrix.md, per_item.csv, heatmap.png."""

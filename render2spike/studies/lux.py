@@ -42,7 +42,7 @@ from .common import (DEFAULT_PREROLL, MIN_LIGHT_SPIKES, NOISE_FREE_LABEL, clean_
                      write_csv)
 
 #: the methods of the old interface (any recon method string works)
-STUDY_METHODS = ("tfp", "tfp-dt", "tfi", "rsir:CKPT")
+STUDY_METHODS = ("tfp", "tfp-dt", "tfp-dt-denoised", "tfi", "rsir:CKPT")
 
 
 @dataclass(frozen=True)
@@ -123,7 +123,7 @@ def run_job(job: SweepJob) -> list[dict]:
 
 
 def plan_lux_sweep(frames, lux_values, models, seeds, *, profile="vidar-default", window=320, n_centers=3,
-                   methods=("tfp", "tfp-dt"), reference_lux=None, preroll: int = DEFAULT_PREROLL) -> list[SweepJob]:
+                   methods=("tfp", "tfp-dt", "tfp-dt-denoised"), reference_lux=None, preroll: int = DEFAULT_PREROLL) -> list[SweepJob]:
     """The jobs of a lux sweep (validated; nothing is simulated yet)."""
     from sensor.frames import read_frames
     from sensor.profile import SensorProfile

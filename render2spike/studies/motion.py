@@ -198,7 +198,7 @@ def render_value(scene, sets, key, value, out_dir, lux=None, duration_s=None, pr
     return folder, sc
 
 
-def run_motion_study(scene, param: str, values, out, *, methods="tfp,tfp-dt", models=("elssim",), seeds=(0, 1, 2),
+def run_motion_study(scene, param: str, values, out, *, methods="tfp,tfp-dt,tfp-dt-denoised", models=("elssim",), seeds=(0, 1, 2),
                      lux=None, duration_s=None, sets=(), profile=None, window=320, n_centers=1,
                      preroll=DEFAULT_PREROLL, blur_axis="auto", edge_radius=20, progress=True, log=print) -> dict:
     """Run the sweep and write rows.csv, summary.csv, summary.md, {psnr,ssim,blur}_vs_<param>.png, strip.png."""
