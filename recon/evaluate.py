@@ -37,7 +37,7 @@ from sensor.errors import InputError, UnknownMethodError
 from sensor.fileio import atomic_path, write_json_atomic, write_text_atomic
 
 from .classic import tfi, tfp, tfp_deadtime
-from .imageio import to_display, white_level
+from .imageio import show_image_row, white_level
 
 WHITE_PERCENTILE = 99.5
 #: the method names ``--methods`` accepts (stable: studies refer to them)
@@ -246,15 +246,7 @@ def write_grid(path, examples, labels: list[str]) -> None:
     for r, (name, ref, imgs) in enumerate(examples):
         wl = white_level(ref, WHITE_PERCENTILE)
         panels = [("Reference", ref)] + [(lab, imgs[lab]) for lab in labels]
-        for c, (lab, img) in enumerate(panels):
-            ax = axes[r, c]
-            ax.imshow(to_display(img, wl), cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(lab, fontsize=7)
-            if c == 0:
-                ax.set_ylabel(name, fontsize=6)
+        show_image_row(axes[r], panels, wl, titles=r == 0, ylabel=name, label_size=6)
     fig.tight_layout()
     with atomic_path(Path(path)) as tmp:
         fig.savefig(tmp, format="png")

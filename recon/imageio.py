@@ -133,6 +133,24 @@ def to_display(img, white: float) -> np.ndarray:
     return np.round(linear_to_srgb(np.asarray(img, np.float32) / float(white)) * 255.0).astype(np.uint8)
 
 
+def show_image_row(axes_row, panels, white: float, *, titles: bool = False, ylabel: str | None = None,
+                   title_size: float = 7, label_size: float = 7) -> None:
+    """Draw one row of a figure grid: ``panels`` [(label, linear (H, W) image)] on matplotlib ``axes_row``.
+
+    Every image is shown with :func:`to_display` at the same ``white`` level, without ticks; ``titles``
+    puts the labels above (the first row), ``ylabel`` names the row at the left.
+    """
+    for c, (lab, img) in enumerate(panels):
+        ax = axes_row[c]
+        ax.imshow(to_display(img, white), cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if titles:
+            ax.set_title(lab, fontsize=title_size)
+        if c == 0 and ylabel is not None:
+            ax.set_ylabel(ylabel, fontsize=label_size)
+
+
 def write_png(path, img_u8) -> Path:
     """Write a uint8 (H, W) or (H, W, 3) array as PNG, atomically."""
     from PIL import Image

@@ -387,12 +387,18 @@ def fit_threshold(reset, levels, normal, x_levels, gain, mu, f, theta_pilot, inf
         per_level.append(dict(level=t["level"], theta_e=th_l, se_e=se_l, block_isis=t["n"],
                               pixels=int(t["idx"].size)))
     say(f"threshold: {theta:.0f} +- {se:.0f} e- ({reset} reset, {len(terms)} levels)")
-    note = "ok"
-    if se > WEAK_THRESHOLD * theta:
-        note = (f"weakly identified (standard error {100 * se / theta:.0f} %): the delta-method error is only a "
-                "guide; record longer or dimmer flats (interval reset) or brighter ones (crossing reset)")
-        say("warning: threshold " + note)
+    note = _threshold_note(theta, se, "the delta-method error is only a guide; record longer or dimmer flats "
+                           "(interval reset) or brighter ones (crossing reset)", say)
     return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note)
+
+
+def _threshold_note(theta: float, se: float, advice: str, say) -> str:
+    """'ok', or (with a warning through ``say``) why a threshold estimate [e-] of standard error ``se`` is weak."""
+    if se <= WEAK_THRESHOLD * theta:
+        return "ok"
+    note = f"weakly identified (standard error {100 * se / theta:.0f} %): {advice}"
+    say("warning: threshold " + note)
+    return note
 
 
 def interval_isi_logpmf(n_max, lam, k, p_dark, f):
@@ -495,11 +501,8 @@ def fit_threshold_interval_ml(levels, normal, x_levels, gain, mu, f, theta_pilot
     theta = float(np.exp(lt))
     se = float(theta * np.sqrt(np.sum(score ** 2)) / abs(curv)) if curv < 0 else float("inf")
     say(f"threshold: {theta:.0f} +- {se:.0f} e- (interval reset, maximum likelihood, {len(terms)} levels)")
-    note = "ok"
-    if se > WEAK_THRESHOLD * theta:
-        note = (f"weakly identified (standard error {100 * se / theta:.0f} %): record longer flats at levels "
-                "where the ISI spreads over several intervals")
-        say("warning: threshold " + note)
+    note = _threshold_note(theta, se, "record longer flats at levels where the ISI spreads over several intervals",
+                           say)
     per_level = [dict(level=t["level"], theta_e=None, se_e=None, block_isis=1, pixels=int(t["idx"].size))
                  for t in terms]
     return dict(threshold_e=theta, threshold_se=se, threshold_levels=per_level, threshold_note=note,

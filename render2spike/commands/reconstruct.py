@@ -43,7 +43,8 @@ def register(subparsers) -> None:
     p.add_argument("--center", type=int, help="interval to reconstruct (default: the stream's middle)")
     p.add_argument("--every", type=int, help="reconstruct every N intervals instead of one instant")
     p.add_argument("--profile", help="sensor profile (name or path): maps for rsir, the model for tfp-dt "
-                   "(default: a uniform vidar-like sensor, no PRNU or hot pixels)")
+                   "(default: a uniform vidar-like sensor, no PRNU, with the hot pixels found in the recording "
+                   "itself; a warning says so)")
     p.add_argument("--layout", help="spike-file layout (default: detected; see `render2spike info --layouts` "
                    "or sensor.spike_layouts())")
     p.add_argument("--height", type=int, help=".dat frame height (default 250)")

@@ -25,6 +25,8 @@ examples:
       --data rendered:out/disk,out/room:crop=64x64:lux=0.5-500 --size rsir --out runs/b
   render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --out runs/a --steps 3000 --resume
   render2spike train --data sdmd:data/SDMD:split=train --init runs/a/model.pt --out runs/ft
+  render2spike train --data davis:data/dvsynth:crop=64x64:res=96x128:lux=0.5-500 --init runs/a/model.pt \\
+      --head --train-only head --lr 2e-3 --out runs/head      # add the output head, train it alone
 """
 
 HELP_DATA = ("data spec KIND:PATH[,PATH...][:key=value...], KIND davis | sdmd | rendered; e.g. "

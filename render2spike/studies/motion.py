@@ -298,7 +298,7 @@ def _plot(path, summ, param, key, ylabel, title, unit):
 
 def write_strip(path, strips, param):
     """Image strip: one row per swept value; clean, noise-free window average, then each method."""
-    from recon.imageio import to_display, white_level
+    from recon.imageio import show_image_row, white_level
     plt = pyplot()
     labels = [CLEAN_LABEL, NOISE_FREE_LABEL] + list(strips[0][3])
     H, W = strips[0][1].shape
@@ -306,15 +306,8 @@ def write_strip(path, strips, param):
                              squeeze=False)
     for i, (v, gt, avg, imgs) in enumerate(strips):
         wl = white_level(gt, 99.5)
-        for j, (lab, img) in enumerate(zip(labels, [gt, avg] + [imgs[k] for k in imgs])):
-            ax = axes[i, j]
-            ax.imshow(to_display(img, wl), cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if i == 0:
-                ax.set_title(lab, fontsize=7)
-            if j == 0:
-                ax.set_ylabel(f"{param}\n= {v:g}", fontsize=7)
+        panels = list(zip(labels, [gt, avg] + [imgs[k] for k in imgs]))
+        show_image_row(axes[i], panels, wl, titles=i == 0, ylabel=f"{param}\n= {v:g}")
     fig.tight_layout()
     return save_figure(fig, path)
 
