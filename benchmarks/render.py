@@ -14,6 +14,8 @@ load average is recorded before and after.
 
 Sections
 --------
+0. **Frame write**: ``sensor.frames.write_frame`` (its own EXR encoder) against
+   the same frame written through the OpenEXR binding, at 64 x 96 and 250 x 400.
 1. **Throughput and overhead** (per bundled scene, at its 64 x 96 window and at
    the full 250 x 400 sensor; fixed spp, adaptive refinement off): the pipeline
    (``render_scene``: frame render, Phi/E conversion, EXR write, state file,
@@ -32,7 +34,7 @@ Sections
    50 lux, budget spp): setup (load + light level + pilot) + keyframes per
    camera-second (section 2, same lux) x the measured seconds per frame
    (``--wait-frames`` frames rendered the way each version renders them:
-   one launch plus 1/32 of a verification launch now; two halves before).
+   one launch plus 1/``VERIFY_EVERY`` of a verification launch now; two halves before).
    **Extrapolated** from those frames.
 """
 
@@ -97,6 +99,7 @@ def m_overhead(cfg):
             if not st["times"]:
                 st["t_first"], st["rnd"] = time.perf_counter(), self
             st["times"].append(t_s)
+            st["verify"] = st.get("verify", 0) + bool(k.get("variance", True))  # frames with a second launch
             return orig(self, t_s, *a, **k)
         rmod.SceneRenderer.render_frame = wrapped
         try:
@@ -129,8 +132,7 @@ def m_overhead(cfg):
         B += [b1, b2]
         pairs += [p1 / b1, p2 / b2]
     pipe, bare_s = float(np.sum(P)), float(np.sum(B))
-    from render2spike.render.noise import VERIFY_EVERY
-    n_verify = len(range(0, res.n_frames, VERIFY_EVERY))
+    n_verify = st["verify"]  # verification launches per pipeline block (as counted in the last block)
     H, W = rnd.height, rnd.width
     bare_pf = bare_s / (len(B) * len(times))
     return {"scene": cfg["scene"], "resolution": f"{H}x{W}", "spp": spp, "frames": res.n_frames,
@@ -228,7 +230,44 @@ def m_noise(cfg):
             "measured_ratios": ratios, "setup_s": setup, "s_per_frame": per_frame, "version": version}
 
 
-MEASURES = {"overhead": m_overhead, "keyframes": m_keyframes, "noise": m_noise}
+def m_write(cfg):
+    """Section 0: one frame write (``sensor.frames.write_frame``: temp file, one write, rename) against the
+    same frame written through the OpenEXR binding (the writer before, still the fallback), alternating,
+    with a render job's header attributes; median milliseconds per frame."""
+    from sensor import frames as F
+    H, W, n = int(cfg["height"]), int(cfg["width"]), int(cfg.get("repeats", 40))
+    rng = np.random.default_rng(0)
+    phi = rng.uniform(0, 1e12, (H, W)).astype(np.float32)
+    lux = rng.uniform(0, 50, (H, W)).astype(np.float32)
+    attrs = {"spp": 16, "render_noise_ratio": 0.2, "render_noise_window_intervals": 1000,
+             "variant": "llvm_ad_spectral", "scene_hash": "0" * 16, "target_lux": 5.0, "seeds": [1, 2],
+             "made_by": json.dumps({"stage": "render", "tool": "render2spike", "scene": "x"}), "scene": "x"}
+    header = {"time_s": ("double", 0.001), "units": ("string", F.UNITS_STRING)}
+    header.update((k, F._attr_kind(v)) for k, v in attrs.items())
+
+    def binding(path):
+        from sensor.fileio import atomic_path
+        with atomic_path(path) as tmp:
+            F._write_frame_openexr(tmp, phi, lux, header)
+    t = {"encoder": [], "binding": []}
+    with tempfile.TemporaryDirectory(dir=cfg.get("dir")) as d:
+        for i in range(n + 2):
+            for kind in (("encoder", "binding") if i % 2 else ("binding", "encoder")):
+                p = Path(d) / f"{kind}{i}.exr"
+                t0 = time.perf_counter()
+                if kind == "encoder":
+                    F.write_frame(p, phi, lux, time_s=0.001, attrs=attrs)
+                else:
+                    binding(p)
+                if i >= 2:  # two warm-up rounds
+                    t[kind].append(time.perf_counter() - t0)
+        same = (Path(d) / "encoder3.exr").read_bytes() == (Path(d) / "binding3.exr").read_bytes()
+    med = {k: float(np.median(v)) for k, v in t.items()}
+    return {"resolution": f"{H}x{W}", "repeats": n, "encoder_ms": 1e3 * med["encoder"],
+            "binding_ms": 1e3 * med["binding"], "speedup": med["binding"] / med["encoder"], "same_bytes": same}
+
+
+MEASURES = {"overhead": m_overhead, "keyframes": m_keyframes, "noise": m_noise, "write": m_write}
 
 
 # ------------------------------------------------------------------------------------------ driver
@@ -268,6 +307,17 @@ def write_report(res, meta, out_dir: Path) -> Path:
                 out.append(f"`{k}` measured {m.get('date')} (`{m.get('command')}`), load average before / after "
                            f"{list(m.get('load_before') or [])} / {list(m.get('load_after') or [])}.")
         return [" ".join(out), ""] if out else []
+    if res.get("write"):
+        L += ["## Frame write (sensor.frames.write_frame against the OpenEXR binding)", ""] + when("write") + [
+              "One frame (Phi and E float32, uncompressed scanline, a render job's header) to a temp file in /tmp, "
+              "renamed; the two writers alternate, median of the repeats after two warm-up rounds. 'same bytes': "
+              "the two files are identical.", "",
+              "| resolution | repeats | encoder ms | OpenEXR binding ms | binding / encoder | same bytes | load before-after |",
+              "|---|---|---|---|---|---|---|"]
+        for r in res["write"]:
+            L.append(f"| {r['resolution']} | {r['repeats']} | {r['encoder_ms']:.3f} | {r['binding_ms']:.3f} | "
+                     f"{r['speedup']:.1f} | {r['same_bytes']} | {r['load_before'][0]:.1f}-{r['load_after'][0]:.1f} |")
+        L.append("")
     if res.get("overhead"):
         dates = sorted(r["date"] for r in res["overhead"] if r.get("date"))
         intro = when("overhead") if not dates else [
@@ -276,9 +326,9 @@ def write_report(res, meta, out_dir: Path) -> Path:
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", ""] + intro + [
               "Blocks of frames in the order pipeline, bare, bare, pipeline (`--rounds` times, 2 by default; the row's blocks are in 'per block'); the pipeline "
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
-              "background writer, journal, manifest). It includes the noise verification launches (the first and "
-              "every 32nd frame: 1 extra launch in 32 frames); 'without verification' takes one bare frame per "
-              "verification launch out. 'per block': each pipeline block over its neighbouring bare block.", "",
+              "background writer, journal, manifest). It includes the noise verification launches (the first "
+              "frame of every render, then every `VERIFY_EVERY`-th: 1 extra launch per block of up to "
+              "`VERIFY_EVERY` frames); 'without verification' takes one bare frame per verification launch out. 'per block': each pipeline block over its neighbouring bare block.", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
               "| without verification | per block | load before-after |", "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
@@ -338,7 +388,7 @@ def main(argv=None):
     ap.add_argument("--clip", type=float, default=0.02, help="camera seconds of the keyframe runs (default 0.02)")
     ap.add_argument("--kf-spp", default="auto", help="spp of the keyframe runs (default: auto, each version's budget)")
     ap.add_argument("--wait-frames", type=int, default=2, help="frames timed per wait point (default 2)")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["overhead", "keyframes", "noise", "wait"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["write", "overhead", "keyframes", "noise", "wait"])
     ap.add_argument("--old-for", nargs="*", default=["keyframes", "noise", "wait"],
                     choices=["keyframes", "noise", "wait"], help="sections that also measure --old (default all)")
     ap.add_argument("--merge", action="store_true",
@@ -386,6 +436,17 @@ def main(argv=None):
 
     def say(msg):
         print(f"[{time.strftime('%H:%M:%S')} load {os.getloadavg()[0]:.1f}] {msg}", flush=True)
+    if "write" not in a.skip:
+        l0 = now_load()
+        res["write"] = []
+        for H, W in ((64, 96), (250, 400)):
+            lb = now_load()
+            r = _run("write", {"height": H, "width": W})
+            r.update(load_before=lb, load_after=now_load())
+            res["write"].append(r)
+            say(f"write {r['resolution']}: {r['encoder_ms']:.3f} ms (binding {r['binding_ms']:.3f} ms), same bytes "
+                f"{r['same_bytes']}")
+        mark("write", l0)
     if "overhead" not in a.skip:
         l0 = now_load()
         res["overhead"] = []
