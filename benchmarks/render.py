@@ -97,7 +97,7 @@ def m_overhead(cfg):
 
         def wrapped(self, t_s, *a, **k):
             if not st["times"]:
-                st["t_first"], st["rnd"] = time.perf_counter(), self
+                st["t_first"], st["rnd"], st["c_first"] = time.perf_counter(), self, time.process_time()
             st["times"].append(t_s)
             st["verify"] = st.get("verify", 0) + bool(k.get("variance", True))  # frames with a second launch
             return orig(self, t_s, *a, **k)
@@ -106,17 +106,21 @@ def m_overhead(cfg):
             with tempfile.TemporaryDirectory() as d:
                 t_all = time.perf_counter()
                 res = render_scene(sc, d, progress=False, log=lambda *a: None)
-                t_end = time.perf_counter()
+                t_end, c_end = time.perf_counter(), time.process_time()
         finally:
             rmod.SceneRenderer.render_frame = orig
+        CPU["P"].append(c_end - st["c_first"])
         return t_end - st["t_first"], st["t_first"] - t_all, res, st
+
+    CPU = {"P": [], "B": []}  # process CPU time (all threads: render, writer) of each block
 
     def bare(rnd, times):
         np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1, spp=spp))  # warm (kernels cached)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for i, t_s in enumerate(times):
             rnd.set_time(t_s)
             np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1000 + i, spp=spp))
+        CPU["B"].append(time.process_time() - c0)
         return time.perf_counter() - t0
 
     P, B, pairs = [], [], []
@@ -139,6 +143,9 @@ def m_overhead(cfg):
             "rounds": int(cfg.get("rounds", 2)), "setup_s": setup_s,
             "pipeline_s_per_frame": pipe / (len(P) * res.n_frames), "bare_s_per_frame": bare_pf,
             "overhead_ratio": pipe / bare_s, "overhead_ratio_blocks": pairs,
+            # CPU time of the process (all threads) over the same blocks: what the pipeline costs in work,
+            # much less sensitive than wall time to what other processes on the machine do meanwhile
+            "cpu_overhead_ratio": float(np.sum(CPU["P"]) / np.sum(CPU["B"])),
             # the verification launches are extra renders by design: their estimated cost (one bare frame
             # each) taken out, what is left is the pipeline's own per-frame cost
             "overhead_ratio_without_verification": (pipe - len(P) * n_verify * bare_pf) / bare_s,
@@ -328,13 +335,17 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
               "background writer, journal, manifest). It includes the noise verification launches (the first "
               "frame of every render, then every `VERIFY_EVERY`-th: 1 extra launch per block of up to "
-              "`VERIFY_EVERY` frames); 'without verification' takes one bare frame per verification launch out. 'per block': each pipeline block over its neighbouring bare block.", "",
+              "`VERIFY_EVERY` frames); 'without verification' takes one bare frame per verification launch out. 'per block': each pipeline block over its neighbouring bare block. "
+              "'CPU': the same ratio in process CPU time (all threads), which other processes on the machine "
+              "disturb less.", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
-              "| without verification | per block | load before-after |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| without verification | CPU | per block | load before-after |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
             L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
                      f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
                      f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
+                     f"{_fmt(r.get('cpu_overhead_ratio'), 3)} | "
                      + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " | "
                      + (f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}" if r.get("load_before") else "") + " |")
         L.append("")
