@@ -6,6 +6,7 @@ import contextlib
 import datetime as _dt
 import errno
 import functools
+import itertools
 import json
 import os
 import platform
@@ -75,6 +76,57 @@ def atomic_path(path, suffix: str | None = None):
         raise
     finally:
         _LIVE_TEMPS.discard(tmp)
+
+
+_TMP_NUMBERS = itertools.count()
+
+
+def write_bytes_atomic(path, data) -> Path:
+    """Write ``data`` (bytes or a C-contiguous buffer) to ``path`` atomically; the lean :func:`atomic_path`.
+
+    For writers of one buffer per file at a high rate (rendered frames): the same temp name pattern
+    (``.STEM.part-PID-N.ext``, swept by :func:`sensor.lock.sweep_parts` when its writer is dead), the
+    same registration for :func:`remove_live_temps`, the same permissions (``0o666`` less the umask,
+    applied by the kernel at creation), the same :class:`~sensor.errors.DiskFullError` naming ``path``,
+    and nothing left at ``path`` or beside it on failure; but one ``open`` with ``O_EXCL`` on a name
+    numbered by a per-process counter instead of ``mkstemp``, ``close``, ``chmod`` and a second ``open``
+    (~0.03 instead of ~0.15 ms per file on ext4).
+    """
+    path = Path(path)
+    prefix = f".{path.stem}.part-{os.getpid()}-"
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    while True:
+        tmp = path.parent / f"{prefix}{next(_TMP_NUMBERS)}{path.suffix}"
+        _LIVE_TEMPS.add(tmp)  # before the file exists: a signal may land right after its creation
+        try:
+            fd = os.open(tmp, flags, 0o666)
+            break
+        except FileExistsError:  # left by a dead process of the same pid: take the next number
+            _LIVE_TEMPS.discard(tmp)
+        except FileNotFoundError:
+            _LIVE_TEMPS.discard(tmp)
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except BaseException:
+            _LIVE_TEMPS.discard(tmp)
+            raise
+    try:
+        try:
+            view = memoryview(data).cast("B")
+            while view:  # os.write may write less than asked
+                view = view[os.write(fd, view):]
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        if is_disk_full(exc):
+            from .errors import DiskFullError
+            raise DiskFullError(f"disk full while writing {path}", path=path) from exc
+        raise
+    finally:
+        _LIVE_TEMPS.discard(tmp)
+    return path
 
 
 def is_disk_full(exc: BaseException) -> bool:

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FrameFileError
-from .fileio import atomic_path, provenance, write_json_atomic
+from .fileio import atomic_path, provenance, write_bytes_atomic, write_json_atomic
 
 MANIFEST_NAME = "frames.json"
 FORMAT_NAME = "render2spike-frames"
@@ -78,10 +78,12 @@ def write_frame(path, phi, illuminance_lux=None, *, time_s: float, attrs: dict |
         bools as the strings ``true``/``false``, strings as strings, anything else as a JSON string.
 
     The file is uncompressed (rendered float32 frames carry Monte Carlo noise in every mantissa, so
-    ZIP saved ~2 % of the size for ~3x the write time). It is assembled by :func:`_encode_exr` (numpy,
-    one ``write``; ~10x faster than the OpenEXR binding, the same bytes in every header attribute and
-    pixel); a header that encoder does not handle (see :func:`_encode_exr`) goes through the OpenEXR
-    binding instead. Either way the file is written to a temp name beside ``path`` and renamed.
+    ZIP saved ~2 % of the size for ~3x the write time). It is assembled in memory by
+    :func:`_encode_exr` (numpy; the same bytes as the OpenEXR binding writes, header and pixels) and
+    written with one ``write`` to a temp name beside ``path``, then renamed
+    (:func:`~sensor.fileio.write_bytes_atomic`); a header that encoder does not handle goes through
+    the OpenEXR binding instead (:func:`~sensor.fileio.atomic_path`). Cost per frame: see
+    ``benchmarks/results/render.md`` ("Frame write").
     """
     phi = np.ascontiguousarray(phi, dtype=np.float32)
     if phi.ndim != 2:
@@ -93,12 +95,10 @@ def write_frame(path, phi, illuminance_lux=None, *, time_s: float, attrs: dict |
     header.update((key, _attr_kind(value)) for key, value in (attrs or {}).items())
     path = Path(path)
     buf = _encode_exr({"E": E, "Phi": phi}, header)
+    if buf is not None:
+        return write_bytes_atomic(path, buf)
     with atomic_path(path) as tmp:
-        if buf is not None:
-            with open(tmp, "wb") as f:
-                f.write(buf)
-        else:
-            _write_frame_openexr(tmp, phi, E, header)
+        _write_frame_openexr(tmp, phi, E, header)
     return path
 
 

@@ -1,5 +1,7 @@
 """write_frame's own EXR encoder: the same file as the OpenEXR binding writes, byte for byte and attribute by attribute."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -94,3 +96,61 @@ def test_shape_errors_before_anything_is_written(tmp_path):
     with pytest.raises(F.FrameFileError, match="E shape"):
         write_frame(tmp_path / "a.exr", np.ones((2, 2)), np.ones((2, 3)), time_s=0.0)
     assert not list(tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------ write_bytes_atomic (the frames' file writer)
+def test_write_bytes_atomic_names_permissions_and_sweep_pattern(tmp_path, monkeypatch):
+    import os
+    import re
+
+    from sensor import fileio
+    from sensor.lock import _PART_RE
+    made = []
+    real_open = os.open
+
+    def spy(p, *a, **k):
+        made.append(Path(p).name)
+        return real_open(p, *a, **k)
+    monkeypatch.setattr(fileio.os, "open", spy)
+    out = fileio.write_bytes_atomic(tmp_path / "sub" / "f.exr", np.arange(5, dtype=np.uint8))  # folder made
+    assert out.read_bytes() == bytes(range(5))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask  # what atomic_path gives
+    assert re.fullmatch(rf"\.f\.part-{os.getpid()}-\d+\.exr", made[-1]) and _PART_RE.match(made[-1])
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["f.exr"] and not fileio._LIVE_TEMPS
+
+
+def test_write_bytes_atomic_skips_a_taken_temp_name(tmp_path, monkeypatch):
+    import os
+
+    from sensor import fileio
+    n = next(fileio._TMP_NUMBERS) + 1
+    stale = tmp_path / f".f.part-{os.getpid()}-{n}.exr"  # a dead process of the same pid left this
+    stale.write_bytes(b"old")
+    fileio.write_bytes_atomic(tmp_path / "f.exr", b"new")
+    assert (tmp_path / "f.exr").read_bytes() == b"new" and stale.read_bytes() == b"old"
+
+
+def test_write_bytes_atomic_failure_leaves_nothing_and_disk_full_names_the_file(tmp_path, monkeypatch):
+    import errno
+
+    from sensor import fileio
+    from sensor.errors import DiskFullError
+    (tmp_path / "f.exr").write_bytes(b"previous")
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(fileio.os, "write", full)
+    with pytest.raises(DiskFullError, match=r"disk full while writing .*f\.exr"):
+        write_frame(tmp_path / "f.exr", np.ones((4, 4)), time_s=0.0)
+    assert [p.name for p in tmp_path.iterdir()] == ["f.exr"] and (tmp_path / "f.exr").read_bytes() == b"previous"
+    assert not fileio._LIVE_TEMPS
+    monkeypatch.undo()
+
+    def boom(src, dst):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(fileio.os, "replace", boom)
+    with pytest.raises(KeyboardInterrupt):
+        fileio.write_bytes_atomic(tmp_path / "g.exr", b"x" * 100)
+    assert [p.name for p in tmp_path.iterdir()] == ["f.exr"] and not fileio._LIVE_TEMPS
