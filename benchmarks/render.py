@@ -336,15 +336,17 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "background writer, journal, manifest). It includes the noise verification launches (the first "
               "frame of every render, then every `VERIFY_EVERY`-th: 1 extra launch per block of up to "
               "`VERIFY_EVERY` frames); 'without verification' takes one bare frame per verification launch out. 'per block': each pipeline block over its neighbouring bare block. "
-              "'CPU': the same ratio in process CPU time (all threads), which other processes on the machine "
-              "disturb less.", "",
+              "'median block': the median of those, which one block disturbed by another process moves less. "
+              "'CPU': the same ratio as 'overhead' in process CPU time (all threads), which other processes on "
+              "the machine also disturb less.", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
-              "| without verification | CPU | per block | load before-after |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| without verification | median block | CPU | per block | load before-after |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in res["overhead"]:
             L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
                      f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
                      f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
+                     f"{_fmt(float(np.median(r['overhead_ratio_blocks'])) if r.get('overhead_ratio_blocks') else None, 3)} | "
                      f"{_fmt(r.get('cpu_overhead_ratio'), 3)} | "
                      + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " | "
                      + (f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}" if r.get("load_before") else "") + " |")

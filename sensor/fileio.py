@@ -64,8 +64,16 @@ def atomic_path(path, suffix: str | None = None):
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the final file the usual permissions
-    try:
+    with _renamed_on_success(tmp, path):
         yield tmp
+
+
+@contextlib.contextmanager
+def _renamed_on_success(tmp: Path, path: Path):
+    """Rename the registered temp file ``tmp`` onto ``path`` when the body succeeds; else remove it (a full
+    disk raised as DiskFullError naming ``path``); either way unregister it."""
+    try:
+        yield
         os.replace(tmp, path)
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
@@ -109,23 +117,13 @@ def write_bytes_atomic(path, data) -> Path:
         except BaseException:
             _LIVE_TEMPS.discard(tmp)
             raise
-    try:
+    with _renamed_on_success(tmp, path):
         try:
             view = memoryview(data).cast("B")
             while view:  # os.write may write less than asked
                 view = view[os.write(fd, view):]
         finally:
             os.close(fd)
-        os.replace(tmp, path)
-    except BaseException as exc:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-        if is_disk_full(exc):
-            from .errors import DiskFullError
-            raise DiskFullError(f"disk full while writing {path}", path=path) from exc
-        raise
-    finally:
-        _LIVE_TEMPS.discard(tmp)
     return path
 
 
