@@ -31,6 +31,7 @@ image, as seen by the camera).
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -157,8 +158,17 @@ _EXR_MAGIC = 20000630
 _EXR_PIXEL_TYPES = {0: "<u4", 1: "<f2", 2: "<f4"}  # UINT, HALF, FLOAT
 
 
+def _nul(data, pos: int) -> int:
+    """Index of the next NUL byte in ``data`` (bytes, bytearray or mmap) from ``pos``; ValueError if none."""
+    end = data.find(b"\0", pos)
+    if end < 0:
+        raise ValueError("unterminated string")
+    return end
+
+
 def _exr_channel_fast(data: bytes, name: str):
-    """(time_s or None, channel ``name`` (H, W)) of an uncompressed single-part scanline EXR held in ``data``:
+    """(time_s or None, channel ``name`` (H, W)) of an uncompressed single-part scanline EXR held in ``data``
+    (bytes or bytearray):
     a read-only view of ``data`` (float32, float16 or uint32 as stored); None for any other file
     (compressed, tiled, deep, multi-part, subsampled, without that channel, damaged), which the caller
     then hands to OpenEXR.
@@ -176,13 +186,13 @@ def _exr_channel_fast(data: bytes, name: str):
             return None  # not EXR 2.0 single-part scanline (0x400 = long names, allowed)
         pos, attrs = 8, {}
         while True:
-            end = data.index(b"\0", pos)
+            end = _nul(data, pos)
             if end == pos:
                 pos += 1
                 break
-            tend = data.index(b"\0", end + 1)
+            tend = _nul(data, end + 1)
             (size,) = struct.unpack_from("<i", data, tend + 1)
-            attrs[data[pos:end]] = (data[end + 1:tend], tend + 5, size)
+            attrs[bytes(data[pos:end])] = (bytes(data[end + 1:tend]), tend + 5, size)
             pos = tend + 5 + size
         if attrs[b"compression"][0] != b"compression" or data[attrs[b"compression"][1]] != 0:
             return None
@@ -192,7 +202,7 @@ def _exr_channel_fast(data: bytes, name: str):
         _, at, size = attrs[b"channels"]
         stop, line, offset, dtype = at + size - 1, 0, None, None
         while at < stop:  # name\0, pixel type (int32), pLinear + 3 reserved bytes, x and y sampling (int32)
-            end = data.index(b"\0", at)
+            end = _nul(data, at)
             ptype, _, xs, ys = struct.unpack_from("<iiii", data, end + 1)
             if ptype not in _EXR_PIXEL_TYPES or xs != 1 or ys != 1:
                 return None
@@ -257,6 +267,7 @@ class FrameSequence:
 
     folder: Path
     manifest: dict
+    _buf: bytearray = field(default_factory=bytearray, repr=False, compare=False)  # read_scaled's file buffer
 
     @property
     def times_s(self) -> np.ndarray:
@@ -290,6 +301,51 @@ class FrameSequence:
         self._check(i, time_s, phi.shape)
         check_light(phi, path, "Phi")
         return phi
+
+    def read_scaled(self, i: int, scale: float, out) -> np.ndarray:
+        """Phi of frame ``i`` times ``scale``, written into ``out`` (float32 (H, W)) and returned: what the
+        sensor stage reads (``scale`` = :func:`sensor.units.photoelectron_scale` gives rate_e
+        [e-/interval], bit for bit as :func:`sensor.units.photoelectron_rate` of :meth:`read_phi`).
+
+        Same checks and errors as :meth:`read_phi` (size, timestamp, Phi finite and >= 0), in one pass:
+        an uncompressed scanline file (what :func:`write_frame` writes) is read into a byte buffer that
+        this sequence keeps and reuses (no fresh memory per frame), and Phi is scaled and checked
+        straight out of it (:func:`sensor.fastio.scale_checked`). Other EXR files go through
+        :meth:`read_phi`. The buffer makes this method for one thread at a time per sequence.
+        """
+        from .fastio import scale_checked
+        path = self.path(i)
+        fast = None
+        try:
+            with open(path, "rb", buffering=0) as fh:
+                size = os.fstat(fh.fileno()).st_size
+                if len(self._buf) != size:  # frames of one folder share a size: allocated once
+                    self._buf = bytearray(size)
+                view, got = memoryview(self._buf), 0
+                while got < size:
+                    k = fh.readinto(view[got:])
+                    if not k:
+                        break
+                    got += k
+            if got == size:
+                fast = _exr_channel_fast(self._buf, "Phi")
+        except OSError:
+            fast = None
+        if fast is None or fast[0] is None:  # not our layout (or unreadable): the general path, same errors
+            phi = self.read_phi(i)
+            if out.shape != phi.shape:
+                raise ValueError(f"out is {out.shape}; frame {i} is {phi.shape}")
+            scale_checked(phi, scale, out)
+            return out
+        time_s, phi = float(fast[0]), fast[1]
+        self._check(i, time_s, phi.shape)
+        if out.shape != phi.shape:
+            raise ValueError(f"out is {out.shape}; frame {i} is {phi.shape}")
+        if phi.dtype != np.float32:
+            phi = phi.astype(np.float32)
+        if scale_checked(phi, scale, out):
+            check_light(phi, path, "Phi")  # names the first bad pixel
+        return out
 
     def _check(self, i: int, time_s: float, shape) -> None:
         if shape != self.shape:
