@@ -490,9 +490,56 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
                          f"{'' if marg == '' else f'{marg:.2f}'} | {r.get('e2e_cpu_s', float('nan')):.2f} / "
                          f"{r.get('kernel_cpu_s', float('nan')):.2f} | "
                          f"{r['e2e_peak_rss_mib']:.0f} | {r['kernel_peak_rss_mib']:.0f} | {r.get('load_1min', float('nan')):.1f} |")
+    goals = goal_lines(rows, mem_rows, cli_rows_ or [])
+    if goals:
+        lines += ["", "## Goals (issue 12)", ""] + goals
     lines.append("")
     write_text_atomic(out_dir / "benchmark.md", "\n".join(lines))
     return out_dir / "benchmark.md"
+
+
+def _flat(values, tol: float = 1.15) -> bool:
+    """Flat in duration: the largest value at most ``tol`` times the smallest."""
+    return max(values) <= tol * min(values)
+
+
+def goal_lines(rows, mem_rows, cli_rows_) -> list[str]:
+    """The issue's goals, each with the figures of this run that decide it ("met" / "not met")."""
+    out = []
+    say = lambda ok: "**met**" if ok else "**not met**"  # noqa: E731
+    fast = [r for r in rows if r["model"] == "elssim" and r["implementation"] == "fast"]
+    for reset in sorted({r.get("reset", "") for r in fast}):
+        dim = [r for r in fast if r.get("reset", "") == reset and r["lux"] <= 5]
+        if dim:
+            out.append(f"- kernel (elssim, {reset or 'profile'} reset) at least real time at <= 5 lux: "
+                       f"{say(all(r['realtime_factor'] >= 1 for r in dim))} ("
+                       + ", ".join(f"{r['realtime_factor']:.2f}x at {r['lux']:g} lux" for r in dim) + ")")
+        bright = [r for r in fast if r.get("reset", "") == reset and r["lux"] >= 500]
+        if bright:
+            out.append(f"- kernel (elssim, {reset or 'profile'} reset) at least 10x the reference at 500 lux: "
+                       f"{say(all(r['speedup_vs_reference'] >= 10 for r in bright))} ("
+                       + ", ".join(f"{r['speedup_vs_reference']:.1f}x" for r in bright) + ")")
+    if len(mem_rows) > 1:
+        vals = [r["peak_traced_mib"] for r in mem_rows]
+        out.append(f"- kernel peak memory flat in duration: {say(_flat(vals))} ("
+                   + ", ".join(f"{v:.1f}" for v in vals) + " MiB traced)")
+    for kind in dict.fromkeys(r["input"] for r in cli_rows_):
+        rs = [r for r in cli_rows_ if r["input"] == kind]
+        last = rs[-1]
+        marg = [r["e2e_vs_kernel_marginal"] for r in rs if r.get("e2e_vs_kernel_marginal", "") != ""]
+        text = (f"- `render2spike simulate` from a {kind}, at least 0.8x the kernel's throughput: end to end "
+                f"{say(last['e2e_vs_kernel'] >= 0.8)} at {last['camera_s']:g} s ({last['e2e_vs_kernel']:.2f}x, "
+                f"start-up included)")
+        if marg:
+            text += f"; marginal throughput {say(marg[-1] >= 0.8)} ({marg[-1]:.2f}x from {rs[-2]['camera_s']:g} to " \
+                    f"{last['camera_s']:g} s)"
+        out.append(text)
+        if len(rs) > 1:
+            vals = [r["e2e_peak_rss_mib"] for r in rs]
+            out.append(f"- `render2spike simulate` from a {kind}, peak memory flat in duration: {say(_flat(vals))} ("
+                       + ", ".join(f"{v:.0f}" for v in vals) + " MiB for "
+                       + ", ".join(f"{r['camera_s']:g}" for r in rs) + " s)")
+    return out
 
 
 def main(argv=None):
@@ -510,12 +557,14 @@ def main(argv=None):
     ap.add_argument("--no-memory-scan", action="store_true", help="skip the peak-memory-vs-duration rows")
     ap.add_argument("--quick", action="store_true", help="smoke run: 0.2 s of camera time, 100 reference intervals")
     ap.add_argument("--no-cli", action="store_true", help="skip `render2spike simulate` end to end vs the kernel")
-    ap.add_argument("--cli-frames", type=float, nargs="+", default=[0.5, 1.0, 2.0],
-                    help="camera seconds of the frames-folder inputs (default 0.5 1 2)")
+    ap.add_argument("--cli-frames", type=float, nargs="+", default=[1.0, 2.0, 4.0],
+                    help="camera seconds of the frames-folder inputs (800 kB per keyframe at 1 kHz: 3.2 GB of "
+                         "temporary files for 4 s; default 1 2 4)")
     ap.add_argument("--cli-npz", type=float, nargs="*", default=[0.5, 2.0],
                     help="camera seconds of the keyframe .npz inputs (rate_e + t_s, 1 kHz; default 0.5 2)")
-    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.1, 0.2, 0.5],
-                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s; default 0.1 0.2 0.5)")
+    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.2, 0.5, 1.0],
+                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s: an 8 GB temporary file "
+                         "for 1 s; default 0.2 0.5 1)")
     ap.add_argument("--only-cli", action="store_true", help="only the end-to-end section")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--one", help=argparse.SUPPRESS)

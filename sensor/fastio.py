@@ -51,6 +51,31 @@ if HAVE_NUMBA:
         return bad
 
 
+def exr_scale_checked(table, heads, src, first: int, stride: int, y0: int, line: int, scale: float, out) -> int:
+    """:func:`scale_checked` of a channel ``src`` (float32 (H, W)) sliced out of an uncompressed scanline
+    EXR's bytes, after checking in the same compiled pass that the offset ``table`` (uint64 (H,)) puts the
+    scanlines back to back from byte ``first`` every ``stride`` bytes and that every scanline's ``heads``
+    (int32 (H, 2): y, data size) reads ``y0 + r`` and ``line``. Returns -1 (and writes nothing) when
+    the layout does not hold, else the number of non-finite or negative values."""
+    if HAVE_NUMBA:
+        return int(_exr_scale_checked(table, heads, src, first, stride, y0, line, float(scale), out))
+    H = table.shape[0]
+    if np.any(table != first + stride * np.arange(H, dtype=np.uint64)) or \
+            np.any(heads[:, 0] != y0 + np.arange(H)) or np.any(heads[:, 1] != line):
+        return -1
+    return scale_checked(src, scale, out)
+
+
+if HAVE_NUMBA:
+    @njit(nogil=True, cache=True)
+    def _exr_scale_checked(table, heads, src, first, stride, y0, line, scale, out):  # pragma: no cover - compiled
+        H = table.shape[0]
+        for r in range(H):
+            if np.int64(table[r]) != first + stride * r or heads[r, 0] != y0 + r or heads[r, 1] != line:
+                return -1
+        return _scale_checked_2d(src, scale, out)
+
+
 def scale_checked(src, scale: float, out) -> int:
     """``out[...] = float32(float64(src) * scale)`` in one pass; returns how many ``src`` values are
     non-finite or negative (``out`` is written regardless).

@@ -168,3 +168,42 @@ def test_npz_keyframes_read_block_by_block_give_the_python_api_spikes(tmp_path, 
                  "--seed", "2", "--quiet"]) == 0
     want = sensor.simulate(rate.astype(np.float32), prof, "elssim", seed=2, t_s=t)
     np.testing.assert_array_equal(sensor.read_spikes(tmp_path / "s.npz"), want)
+
+
+@pytest.mark.parametrize("damage", ["table", "scanline y", "scanline size"])
+def test_read_scaled_checks_the_layout_of_every_frame_not_only_the_first(tmp_path, damage):
+    """Frames after the first reuse the first one's parsed header; each frame's offset table and scanline
+    heads are still checked, so a damaged frame is never sliced at the wrong place."""
+    import struct
+    p = sensor.SensorProfile.load("vidar-default")
+    scale = photoelectron_scale(p.pixel_pitch_m, p.fill_factor, p.interval_s)
+    phi = np.random.default_rng(3).uniform(1e14, 2e16, (2, 6, 5)).astype(np.float32)
+    sensor.write_frames(tmp_path / "fr", phi, [0.0, 1e-3])
+    seq = sensor.read_frames(tmp_path / "fr")
+    out = np.empty((6, 5), np.float32)
+    seq.read_scaled(0, scale, out)
+    assert seq._hdr is not None  # the layout is remembered
+    data = bytearray(seq.path(1).read_bytes())
+    pos, H = seq._hdr[4], 6
+    first = pos + 8 * H
+    if damage == "table":
+        struct.pack_into("<Q", data, pos + 8 * 2, 7)
+    elif damage == "scanline y":
+        struct.pack_into("<i", data, first + 3 * (8 + 2 * 5 * 4), 99)
+    else:
+        struct.pack_into("<i", data, first + 4, 12)
+    seq.path(1).write_bytes(bytes(data))
+    from sensor.fastio import exr_scale_checked
+    from sensor.frames import _exr_header, _exr_views
+    hdr = _exr_header(data, "Phi")
+    table, heads, src = _exr_views(data, hdr)
+    assert exr_scale_checked(table, heads, src, first, 8 + hdr[4], hdr[3], hdr[4], scale, out) == -1  # refused
+    intact = bytearray(sensor.frames.Path(seq.path(0)).read_bytes())
+    table, heads, src = _exr_views(intact, hdr)
+    assert exr_scale_checked(table, heads, src, first, 8 + hdr[4], hdr[3], hdr[4], scale, out) == 0
+    try:
+        got = seq.read_scaled(1, scale, out).copy()
+    except sensor.FrameFileError:
+        return  # refused, naming the file: fine
+    # or read by OpenEXR's own reader (which may repair an offset table): then with the true values
+    np.testing.assert_array_equal(got, sensor.photoelectron_rate(phi[1], p))
