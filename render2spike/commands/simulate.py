@@ -128,6 +128,41 @@ class _NpzMember:
         self.zf.close()
 
 
+def _stored_member_map(path: Path, name: str):
+    """A read-only memory map of array ``name`` of an .npz when it is stored (not deflated, not encrypted),
+    like ``np.load(..., mmap_mode='r')`` of an .npy; else None.
+
+    A stored member's bytes lie in the file as they are: the map spares reading them through the zip
+    stream, which copies every byte twice and computes its CRC-32 (as much CPU as the kernel's reading
+    of the keyframes). The CRC is then not checked; every value still is (finite, >= 0).
+    """
+    import struct
+    with zipfile.ZipFile(path) as zf:
+        try:
+            info = zf.getinfo(name + ".npy")
+        except KeyError:
+            return None
+        if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:
+            return None
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset)
+        local = fh.read(30)
+        if len(local) < 30 or local[:4] != b"PK\x03\x04":
+            return None
+        n_name, n_extra = struct.unpack_from("<HH", local, 26)
+        start = info.header_offset + 30 + n_name + n_extra
+        fh.seek(start)
+        version = np.lib.format.read_magic(fh)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+            np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(fh)
+        offset = fh.tell()
+    if dtype.hasobject or len(shape) == 0 or offset - start + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize \
+            > info.file_size:
+        return None
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=tuple(shape), order="F" if fortran else "C")
+
+
 class _ChunkPool:
     """Float32 chunk arrays recycled once nobody else holds them.
 
@@ -158,8 +193,9 @@ class _ChunkPool:
 class RateSource:
     """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT.
 
-    Nothing is read whole: an ``.npy`` is memory-mapped and handed out in row chunks whose pages are
-    dropped again once used, an ``.npz`` member is decoded chunk by chunk from the zip stream, and a
+    Nothing is read whole: an ``.npy`` (and an ``.npz`` whose ``rate_e`` is stored, as ``np.savez`` writes
+    it) is memory-mapped and handed out in row chunks whose pages are dropped again once used, a deflated
+    ``.npz`` member (``np.savez_compressed``) is decoded chunk by chunk from the zip stream, and a
     frames folder's EXR files are read (the Phi channel only). A reader thread reads and checks the
     next chunk while the kernel (which releases the GIL) simulates the current one (:meth:`chunks`).
     Memory is a few chunks, flat in duration.
@@ -190,8 +226,12 @@ class RateSource:
                         raise InputError(f"no array 'rate_e' (has: {', '.join(z.files)})", path=self.path,
                                          field="rate_e")
                     self.t_s = z["t_s"].astype(np.float64) if "t_s" in z else None
-                self._member = _NpzMember(self.path, "rate_e")
-                shape = self._member.shape
+                self.rate = _stored_member_map(self.path, "rate_e")
+                if self.rate is None:  # deflated (or otherwise not mappable): decoded chunk by chunk
+                    self._member = _NpzMember(self.path, "rate_e")
+                    shape = self._member.shape
+                else:
+                    shape = self.rate.shape
             except InputError:
                 raise
             except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
@@ -344,7 +384,10 @@ class RateSource:
         """The chunk of rows [i, j) given the previous chunk (in ``state``; called in order)."""
         prev, end = state["prev"], state["end"]
         ov = end - i if prev is not None else 0
-        rate = self._read(profile, end if ov else i, j, head=prev[prev.shape[0] - ov:] if ov else None)
+        if self.rate is not None:  # a memory map: the repeated rows are part of the view, nothing to copy
+            rate = self._read(profile, i, j)
+        else:
+            rate = self._read(profile, end if ov else i, j, head=prev[prev.shape[0] - ov:] if ov else None)
         state["prev"], state["end"] = rate, j
         return rate, ov
 

@@ -168,6 +168,9 @@ def test_npz_keyframes_read_block_by_block_give_the_python_api_spikes(tmp_path, 
                  "--seed", "2", "--quiet"]) == 0
     want = sensor.simulate(rate.astype(np.float32), prof, "elssim", seed=2, t_s=t)
     np.testing.assert_array_equal(sensor.read_spikes(tmp_path / "s.npz"), want)
+    src = RateSource(tmp_path / "r.npz")  # stored: memory-mapped like an .npy; deflated: decoded from the stream
+    assert (src.rate is not None) == (not compressed) and (src._member is not None) == compressed
+    src.close()
 
 
 @pytest.mark.parametrize("damage", ["table", "scanline y", "scanline size"])
@@ -207,3 +210,17 @@ def test_read_scaled_checks_the_layout_of_every_frame_not_only_the_first(tmp_pat
         return  # refused, naming the file: fine
     # or read by OpenEXR's own reader (which may repair an offset table): then with the true values
     np.testing.assert_array_equal(got, sensor.photoelectron_rate(phi[1], p))
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_a_bad_rate_in_an_npz_is_named_by_its_absolute_index(tmp_path, capsys, compressed):
+    prof = sensor.SensorProfile.synthetic(4, 8, threshold_e=30, seed=1)
+    t = np.arange(0, 0.1201, 1e-3)
+    rate = np.ones((t.size, 4, 8), np.float32)
+    rate[97, 2, 3] = np.nan  # in the second block's read
+    (np.savez_compressed if compressed else np.savez)(tmp_path / "r.npz", rate_e=rate, t_s=t)
+    assert main(["simulate", str(tmp_path / "r.npz"), "--out", str(tmp_path / "s.npz"), "--profile",
+                 str(prof.save(tmp_path / "cam.npz")), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "r.npz" in err and "[97, 2, 3]" in err and "Traceback" not in err
+    assert not (tmp_path / "s.npz").exists()
