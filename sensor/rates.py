@@ -169,27 +169,37 @@ def block_keyframe_rows(t_s, block: int, interval_s: float = INTERVAL_S) -> list
     """Keyframe rows to read per simulator block so that no block's keyframes span two reads.
 
     For keyframe times ``t_s`` (K,) [s] and blocks of ``block`` intervals from ``t_s[0]`` (the last one
-    partial), the row ranges ``[i, j)`` of keyframes that each block uses (:class:`RateSchedule`'s
-    own choice), dropping ranges that add no new row. Consecutive ranges overlap by the rows two
-    blocks share (one when a keyframe falls on the block boundary, two otherwise): a reader that
-    delivers range ``k`` with ``overlap`` = the rows it repeats (``RateSchedule.add(..., overlap=)``)
-    lets the schedule hand each block a view of one chunk instead of joining chunks (a copy of
-    every keyframe, serial with the kernel). Every row ``0 .. K-1`` is in some range.
+    partial), the row ranges ``[i, j)`` to feed a :class:`RateSchedule` one after the other. The plan
+    follows the schedule's own rules, step by step: a block runs as soon as the keyframes fed cover it
+    (:meth:`RateSchedule.covered`, with its round-off tolerance), and afterwards the schedule keeps the
+    keyframes from the last one at or before the block's end. Each range starts at the first keyframe
+    the schedule still holds, so with ``overlap`` = the rows it repeats
+    (``RateSchedule.add(..., overlap=)``) the schedule replaces them and every block's keyframes are
+    one array (a view of one chunk) instead of rows joined from two chunks -- a copy of every
+    keyframe, serial with the kernel. Ranges that would add no row are skipped; every row
+    ``0 .. K-1`` is in some range.
     """
     t = np.asarray(t_s, dtype=np.float64).reshape(-1)
-    if t.size < 2:
-        return [(0, int(t.size))] if t.size else []
+    K = int(t.size)
+    if K < 2:
+        return [(0, K)] if K else []
     total = n_intervals_spanned(t[0], t[-1], interval_s)
+    # intervals that keyframes 0..k cover, as RateSchedule.covered() counts them (non-decreasing in k)
+    spanned = np.floor((t - t[0]) / float(interval_s) + _N_INTERVALS_EPS).astype(np.int64)
     out: list[tuple[int, int]] = []
-    end = 0  # rows [0, end) are covered by the ranges so far
-    for m0 in range(0, max(total, 1), block):
-        m1 = min(m0 + block, total) if total else 0
-        lo, hi, _ = _knots_of(t, interval_bounds_s(t[0], m0, max(m1, m0), interval_s))
-        if hi + 1 > end:
-            out.append((min(lo, end), hi + 1))  # a block's rows start where the last range left off, or before
-            end = hi + 1
-    if end < t.size:  # keyframes after the last whole interval (never simulated, still delivered)
-        out.append((out[-1][1] - 1 if out else 0, int(t.size)))
+    end = 0  # rows [0, end) fed so far
+    held = 0  # the first row the schedule still holds
+    for m0 in range(0, total, block):
+        m1 = min(m0 + block, total)
+        need = int(np.searchsorted(spanned, m1, "left")) + 1  # rows up to the first that covers the block
+        if need > end:
+            out.append((held, need))
+            end = need
+        # the block runs now; the schedule keeps the keyframes from the last one at or before its end
+        bound = float(interval_bounds_s(t[0], m1, m1, interval_s)[0])
+        held += max(int(np.searchsorted(t[held:end], bound, "right")) - 1, 0)
+    if end < K:  # keyframes after the last whole interval: fed as well (they change nothing)
+        out.append((held, K))
     return out
 
 

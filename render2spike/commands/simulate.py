@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import sys
 import time
 import zipfile
 import zlib
@@ -61,7 +62,7 @@ def register(sub) -> None:
                    help="keyframes read per step (the result does not depend on it). Default: the keyframes of "
                         "one simulator block (1000 intervals) per read, so no block's keyframes are joined from "
                         "two reads, or 32 when a block's keyframes exceed 64 MB. A reader thread keeps about two "
-                        "blocks of keyframes read ahead, at most 256 MB")
+                        "blocks of keyframes read ahead, at most 256 MB, and reuses up to 6 chunk buffers")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p)
     p.set_defaults(func=run)
@@ -133,8 +134,11 @@ def _stored_member_map(path: Path, name: str):
     like ``np.load(..., mmap_mode='r')`` of an .npy; else None.
 
     A stored member's bytes lie in the file as they are: the map spares reading them through the zip
-    stream, which copies every byte twice and computes its CRC-32 (as much CPU as the kernel's reading
-    of the keyframes). The CRC is then not checked; every value still is (finite, >= 0).
+    stream, which copies every byte twice. The member's CRC-32 is still checked: ``crc`` =
+    (expected CRC, CRC of the member's bytes before the array) is returned with the map, and the reader
+    folds in the rows as it hands them out (:meth:`RateSource._crc_rows`).
+    Returns (map, crc) or None. Fortran-ordered arrays are left to the stream reader (which refuses
+    them, as for a deflated member).
     """
     import struct
     with zipfile.ZipFile(path) as zf:
@@ -157,10 +161,12 @@ def _stored_member_map(path: Path, name: str):
             np.lib.format.read_array_header_2_0
         shape, fortran, dtype = read_header(fh)
         offset = fh.tell()
-    if dtype.hasobject or len(shape) == 0 or offset - start + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize \
-            > info.file_size:
-        return None
-    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=tuple(shape), order="F" if fortran else "C")
+        if dtype.hasobject or fortran or len(shape) == 0 or \
+                offset - start + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize != info.file_size:
+            return None
+        fh.seek(start)
+        crc = zlib.crc32(fh.read(offset - start))
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=tuple(shape)), (info.CRC, crc)
 
 
 class _ChunkPool:
@@ -175,13 +181,23 @@ class _ChunkPool:
     def __init__(self, keep: int = 6):
         self.keep = keep
         self.arrays: list[np.ndarray] = []
+        # what sys.getrefcount reports, in this very loop, for an array nobody else holds (the pool's list,
+        # the loop variable, the call's argument: 3 on CPython 3.11-3.13): measured, not assumed, so an
+        # interpreter that counts differently cannot make the pool hand out an array still in use. Pooling
+        # is off where reference counts are deferred (free-threaded builds).
+        self._free = self._free_count() if getattr(sys, "_is_gil_enabled", lambda: True)() else None
+
+    def _free_count(self) -> int:
+        probe = [np.empty(1, np.float32)]
+        count = None
+        for a in probe:
+            count = sys.getrefcount(a)
+        return count
 
     def take(self, shape) -> np.ndarray:
-        import sys
         shape = tuple(shape)
-        for a in self.arrays:
-            # references: the list, the loop variable and getrefcount's argument; nothing else holds it
-            if a.shape == shape and sys.getrefcount(a) <= 3:
+        for a in self.arrays if self._free is not None else ():
+            if a.shape == shape and sys.getrefcount(a) == self._free:
                 return a
         a = np.empty(shape, np.float32)
         if len(self.arrays) >= self.keep:
@@ -207,6 +223,7 @@ class RateSource:
         self.kind = None
         self._member = None
         self._mm = None
+        self._crc = None  # a memory-mapped stored .npz member: its CRC-32, folded in as rows are handed out
         self._pool = _ChunkPool()
         self.rate = None
         if self.path.is_dir():
@@ -226,11 +243,13 @@ class RateSource:
                         raise InputError(f"no array 'rate_e' (has: {', '.join(z.files)})", path=self.path,
                                          field="rate_e")
                     self.t_s = z["t_s"].astype(np.float64) if "t_s" in z else None
-                self.rate = _stored_member_map(self.path, "rate_e")
-                if self.rate is None:  # deflated (or otherwise not mappable): decoded chunk by chunk
+                mapped = _stored_member_map(self.path, "rate_e")
+                if mapped is None:  # deflated (or otherwise not mappable): decoded chunk by chunk
                     self._member = _NpzMember(self.path, "rate_e")
                     shape = self._member.shape
                 else:
+                    self.rate, (want, crc) = mapped
+                    self._crc = {"want": want, "crc": crc, "rows": 0}
                     shape = self.rate.shape
             except InputError:
                 raise
@@ -300,6 +319,20 @@ class RateSource:
         out = np.frombuffer(self._npy_map(), dtype=m.dtype, count=(j - i) * row, offset=self._npy_offset(i))
         return out.reshape((j - i,) + tuple(m.shape[1:])).astype(np.float32, copy=False)
 
+    def _crc_rows(self, j: int) -> None:
+        """Fold rows up to ``j`` (read in order) into the stored member's CRC-32; at the last row, check it."""
+        from sensor.errors import InputError
+        st = self._crc
+        if j <= st["rows"]:
+            return
+        a, b = self._npy_offset(st["rows"]), self._npy_offset(j)
+        with memoryview(self._npy_map()) as whole, whole[a:b] as part:  # no copy; crc32 releases the GIL
+            st["crc"] = zlib.crc32(part, st["crc"])
+        st["rows"] = j
+        if j == self.n and st["crc"] != st["want"]:
+            raise InputError(f"CRC-32 of member 'rate_e.npy' is {st['crc']:08x}, the zip directory says "
+                             f"{st['want']:08x}: the file is damaged", path=self.path, field="rate_e")
+
     def _release(self, i: int, j: int) -> None:
         """Rows [i, j) are used: drop their pages from this process (.npy only). The data stays in the
         file: a row still referenced is read again from the page cache if touched, unchanged."""
@@ -358,12 +391,13 @@ class RateSource:
         as :func:`sensor.rates.block_keyframe_rows` plans them); with ``prefetch`` = n > 0 a reader thread
         keeps the next n chunks read ahead, and starts on them at once (before the first ``next``).
 
-        Each chunk is checked (finite, >= 0; errors name the file and row) and never modified by this
-        source: a fresh array, or for a float32 .npy a view of the file's read-only memory map, whose
-        pages are dropped from the process once the consumer asks for the next chunk (they are read
-        again from the page cache if still touched). The consumer may keep a chunk
-        (``iter_feed_packed(owned=True)``). Repeated rows are copied from the previous chunk, not read
-        again.
+        Each chunk is checked (finite, >= 0; errors name the file and row) and not modified by this
+        source while anything else holds it: an array of the source's pool (reused only once the
+        consumer has dropped every reference to it, views included), or for a float32 .npy or stored
+        .npz a view of the file's read-only memory map, whose pages are dropped from the process once
+        the consumer asks for the next chunk (they are read again from the page cache if still
+        touched). The consumer may keep a chunk (``iter_feed_packed(owned=True)``). Repeated rows are
+        copied from the previous chunk (a memory map's are part of the view), not read again.
         """
         bounds = [(int(i), int(j)) for i, j in bounds]
         for (i0, j0), (i1, j1) in zip(bounds, bounds[1:]):
@@ -386,6 +420,8 @@ class RateSource:
         ov = end - i if prev is not None else 0
         if self.rate is not None:  # a memory map: the repeated rows are part of the view, nothing to copy
             rate = self._read(profile, i, j)
+            if self._crc is not None:
+                self._crc_rows(j)
         else:
             rate = self._read(profile, end if ov else i, j, head=prev[prev.shape[0] - ov:] if ov else None)
         state["prev"], state["end"] = rate, j

@@ -74,6 +74,12 @@ KEYFRAME_TIMES = {
     "sparse": np.array([0.0, 0.11, 0.31]),
     "per interval": np.arange(2400) * 50e-6,
     "off grid": 0.0123 + np.arange(120) * 0.8e-3,
+    # keyframes on (or a round-off away from) block boundaries: the schedule runs a block as soon as the
+    # keyframes fed cover it within its tolerance, and the plan must follow it (a review found these)
+    "10 Hz": np.arange(11) / 10,
+    "10 Hz from 0.3 s": 0.3 + np.arange(11) / 10,
+    "0.15 s apart": 0.01 + np.arange(5) * 0.15,
+    "a hair before a block end": np.array([0.0, 0.1 - 1e-12, 0.2]),
 }
 
 
@@ -223,4 +229,28 @@ def test_a_bad_rate_in_an_npz_is_named_by_its_absolute_index(tmp_path, capsys, c
                  str(prof.save(tmp_path / "cam.npz")), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "r.npz" in err and "[97, 2, 3]" in err and "Traceback" not in err
+    assert not (tmp_path / "s.npz").exists()
+
+
+@pytest.mark.parametrize("per_interval", [False, True])
+def test_a_damaged_stored_npz_is_refused_by_its_crc(tmp_path, capsys, per_interval):
+    """A stored member is memory-mapped, not read through the zip stream, but its CRC-32 is still checked."""
+    import zipfile
+    prof = sensor.SensorProfile.synthetic(4, 8, threshold_e=30, seed=1)
+    t = np.arange(0, 0.1201, 1e-3)
+    rate = np.random.default_rng(2).uniform(0, 5, (t.size, 4, 8)).astype(np.float32)
+    np.savez(tmp_path / "r.npz", **({"rate_e": rate} if per_interval else {"rate_e": rate, "t_s": t}))
+    args = ["--out", str(tmp_path / "s.npz"), "--profile", str(prof.save(tmp_path / "cam.npz")), "--quiet"]
+    assert main(["simulate", str(tmp_path / "r.npz"), *args]) == 0  # intact: accepted
+    (tmp_path / "s.npz").unlink()
+    data = bytearray((tmp_path / "r.npz").read_bytes())
+    with zipfile.ZipFile(tmp_path / "r.npz") as zf:
+        info = zf.getinfo("rate_e.npy")
+    n_name, n_extra = np.frombuffer(bytes(data[info.header_offset + 26:info.header_offset + 30]), "<u2")
+    at = info.header_offset + 30 + int(n_name) + int(n_extra) + info.file_size - 100  # in the last keyframe
+    data[at] ^= 0x01  # one bit of one rate, still a finite positive float32
+    (tmp_path / "r.npz").write_bytes(bytes(data))
+    assert main(["simulate", str(tmp_path / "r.npz"), *args]) == 2
+    err = capsys.readouterr().err
+    assert "r.npz" in err and "CRC-32" in err and "damaged" in err
     assert not (tmp_path / "s.npz").exists()
