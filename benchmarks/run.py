@@ -59,7 +59,6 @@ from sensor.units import intervals_to_seconds, seconds_to_intervals  # noqa: E40
 
 LUX = (0.1, 1.0, 5.0, 50.0, 500.0)
 MODELS = ("elssim", "ideal", "isi")
-CHUNK_KEYFRAMES = 100  # keyframes fed per call (0.1 s)
 
 
 def _profile(name):
@@ -97,12 +96,19 @@ class _Writer:
     def _run(self):
         while True:
             b = self.q.get()
-            if b is None:
-                return
-            self.f.write(b)
+            try:
+                if b is None:
+                    return
+                self.f.write(b)
+            finally:
+                self.q.task_done()
 
     def write(self, data):
         self.q.put(data)
+
+    def drain(self):
+        """Wait until every queued block is written (so no write of a timed block runs in untimed time)."""
+        self.q.join()
 
     def close(self):
         self.q.put(None)
@@ -113,6 +119,7 @@ class _Writer:
 def run_one(cfg: dict) -> dict:
     """Run one configuration in this process; returns the measurements."""
     from sensor import SpikeSimulator
+    from sensor.rates import block_keyframe_rows
     if cfg.get("threads"):
         os.environ["RENDER2SPIKE_THREADS"] = str(cfg["threads"])
     profile = _profile(cfg["profile"])
@@ -129,9 +136,12 @@ def run_one(cfg: dict) -> dict:
     if cfg["sink"] == "disk":
         fd, sink_path = tempfile.mkstemp(suffix=".spk", dir=cfg.get("tmpdir"))
         sink = _Writer(os.fdopen(fd, "wb", buffering=0))
-    tracemalloc.start()
-    base = tracemalloc.get_traced_memory()[0]
+    trace = cfg.get("trace", True)  # off for the end-to-end comparison: tracing slows only this side
+    if trace:
+        tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0] if trace else 0
     wall = 0.0
+    cpu = 0.0  # CPU seconds of the whole process (every thread) inside the timed sections
     n_int = 0
     n_spk = 0
     nbytes = 0
@@ -140,38 +150,52 @@ def run_one(cfg: dict) -> dict:
     per_interval = cfg.get("input") == "per_interval"
     if per_interval:  # one rate per interval (no timestamps), generated a block at a time (not timed)
         sim = SpikeSimulator(profile, model, seed=1, implementation=impl, per_interval=True)
+    # keyframes: one feed per simulator block, exactly its keyframes (block_keyframe_rows; the one or two at a
+    # block boundary repeated with overlap=), so no block's keyframes are ever joined: the kernel at its fastest
+    plan = iter(block_keyframe_rows(np.arange(scene.n_keyframes) * scene.dt, sim.block, profile.interval_s))
+    end = 0
     while (i0 < n_int_target) if per_interval else (i0 < scene.n_keyframes):
+        ov = 0
         if per_interval:
             n = min(sim.block, n_int_target - i0)
             frames = np.stack([scene.frame_at((i0 + m + 0.5) * profile.interval_s) for m in range(n)])
             ts = None
+            i0 += frames.shape[0]
         else:
-            frames, ts = scene.chunk(i0, CHUNK_KEYFRAMES + (1 if i0 == 0 else 0))
-        i0 += frames.shape[0]
-        t = time.perf_counter()
-        for blk in sim.iter_feed_packed(frames, ts):
+            i, j = next(plan)
+            ov = end - i if end else 0
+            frames, ts = scene.chunk(i, j - i)
+            i0 = end = j
+        t, c = time.perf_counter(), time.process_time()
+        for blk in sim.iter_feed_packed(frames, ts, owned=True, overlap=ov):
             if sink is not None:
                 sink.write(blk)
             wall += time.perf_counter() - t
+            cpu += time.process_time() - c
             n_int += blk.shape[0]
             n_spk += int(np.bitwise_count(blk).sum())
             nbytes += blk.nbytes
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
+        if sink is not None:
+            sink.drain()  # the writes of these blocks are part of the timed run, not of the next input's making
         wall += time.perf_counter() - t
+        cpu += time.process_time() - c
         del frames
         if n_int >= n_int_target and not per_interval:
             break
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     blk = sim.finish_packed()
     if sink is not None:
         sink.write(blk)
         sink.close()  # waits for the last write: part of the timed run
     wall += time.perf_counter() - t
+    cpu += time.process_time() - c
     n_int += blk.shape[0]
     n_spk += int(np.bitwise_count(blk).sum())
     nbytes += blk.nbytes
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
+    peak = tracemalloc.get_traced_memory()[1] if trace else float("nan")
+    if trace:
+        tracemalloc.stop()
     if sink is not None:
         os.unlink(sink_path)
     del kf_per_int
@@ -180,7 +204,7 @@ def run_one(cfg: dict) -> dict:
         "model": model, "reset": profile.reset if model == "elssim" else "", "implementation": sim.implementation,
         "lux": lux,
         "rate_e_mean": float(lux_to_rate_e(lux, profile)), "threshold_e": profile.threshold_e,
-        "intervals": n_int, "camera_s": n_int * profile.interval_s, "wall_s": wall,
+        "intervals": n_int, "camera_s": n_int * profile.interval_s, "wall_s": wall, "cpu_s": cpu,
         "pixel_steps_per_s": steps / wall, "realtime_factor": n_int * profile.interval_s / wall,
         "spikes_per_pixel_interval": n_spk / steps, "output_mib": nbytes / 2 ** 20,
         "peak_traced_mib": (peak - base) / 2 ** 20,
@@ -193,8 +217,10 @@ def run_one(cfg: dict) -> dict:
 # ------------------------------------------------------------- `render2spike simulate` end to end vs the kernel
 _WRAP = ("import json, resource, subprocess, sys, time; t = time.perf_counter(); "
          "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); w = time.perf_counter() - t; "
+         "u = resource.getrusage(resource.RUSAGE_CHILDREN); "
          "print(json.dumps({'rc': r.returncode, 'wall_s': w, 'err': r.stderr[-2000:], "
-         "'peak_rss_mib': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}))")
+         "'out': (r.stdout.strip().splitlines() or [''])[-1], "
+         "'cpu_s': u.ru_utime + u.ru_stime, 'peak_rss_mib': u.ru_maxrss / 1024.0}))")
 
 
 def _cli(inp: Path, out: Path, profile: str) -> dict:
@@ -293,7 +319,35 @@ def cli_rows(profile_name: str, frames_durations, npy_durations, lux: float = 5.
                 rows.append(_cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, repeats))
                 say(_cli_say(rows[-1]))
                 src.unlink()
+    return add_marginal(rows)
+
+
+def add_marginal(rows):
+    """Throughput between two durations of one input kind: (kernel s at the longer - at the shorter) /
+    (end-to-end s at the longer - at the shorter), on each row after the first of its kind. The fixed
+    costs (start-up, the last block, exit) cancel; what is left is the rate at which the command turns
+    more input into spikes, against the kernel's."""
+    last = {}
+    for r in rows:
+        a = last.get(r["input"])
+        r["e2e_vs_kernel_marginal"] = "" if a is None or r["e2e_wall_s"] <= a["e2e_wall_s"] else \
+            (r["kernel_wall_s"] - a["kernel_wall_s"]) / (r["e2e_wall_s"] - a["e2e_wall_s"])
+        last[r["input"]] = r
     return rows
+
+
+def _kernel_child(cfg: dict) -> dict:
+    """:func:`run_one` in a grandchild started by a small wrapper process, like the command end to end: its
+    peak RSS is then its own (a child forked straight from this process inherits this process's
+    high-water mark, which includes the input files it just wrote)."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--one", json.dumps(cfg)]
+    r = subprocess.run([sys.executable, "-c", _WRAP, *cmd], capture_output=True, text=True, cwd=str(ROOT))
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    if res["rc"] != 0:
+        raise RuntimeError(f"configuration {cfg} failed:\n{res['err']}")
+    out = json.loads(res["out"])
+    out["peak_rss_mib"] = res["peak_rss_mib"]
+    return out
 
 
 def _best(runs):
@@ -309,16 +363,19 @@ def _cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, 
     e2e_runs, ker_runs = [], []
     for _ in range(repeats):
         e2e_runs.append(_cli(src, d / "o.dat", profile_name))
-        ker_runs.append(_subprocess({"profile": profile_name, "sink": "disk", "threads": 0, "model": "elssim",
-                                     "implementation": "fast", "lux": lux, "duration_s": dur,
-                                     "input": kernel_input, "tmpdir": str(d)}))
+        ker_runs.append(_kernel_child({"profile": profile_name, "sink": "disk", "threads": 0, "model": "elssim",
+                                       "implementation": "fast", "lux": lux, "duration_s": dur,
+                                       "input": kernel_input, "tmpdir": str(d), "trace": False}))
     e2e, ker = _best(e2e_runs), _best(ker_runs)
     steps = ker["intervals"] * prof.height * prof.width
     return {"input": kind, "camera_s": dur, "intervals": ker["intervals"], "e2e_wall_s": e2e["wall_s"],
+            "e2e_cpu_s": e2e["cpu_s"],
             "e2e_pixel_steps_per_s": steps / e2e["wall_s"], "e2e_peak_rss_mib": e2e["peak_rss_mib"],
             "startup_s": startup, "kernel_wall_s": ker["wall_s"], "kernel_pixel_steps_per_s": ker["pixel_steps_per_s"],
-            "kernel_peak_rss_mib": ker["peak_rss_mib"], "e2e_vs_kernel": ker["wall_s"] / e2e["wall_s"],
-            "e2e_vs_kernel_after_startup": ker["wall_s"] / max(e2e["wall_s"] - startup, 1e-9),
+            "kernel_peak_rss_mib": ker["peak_rss_mib"], "kernel_cpu_s": ker["cpu_s"],
+            "e2e_vs_kernel": ker["wall_s"] / e2e["wall_s"],
+            "e2e_vs_kernel_after_startup": (ker["wall_s"] / (e2e["wall_s"] - startup) if e2e["wall_s"] - startup > 0.05
+                                            else float("nan")),  # undefined when start-up is nearly all of it
             "load_1min": load}
 
 
@@ -415,20 +472,77 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
     if cli_rows_:
         lines += ["", "`render2spike simulate` end to end (a child process: imports, JIT cache load, reading the input, "
                   "writing a .dat) vs the kernel on the same input in the same run (elssim, fast, 5 lux; kernel = "
-                  "`SpikeSimulator.iter_feed_packed` on in-memory input, output written to disk, JIT excluded). "
+                  "`SpikeSimulator.iter_feed_packed` on in-memory input, one feed per simulator block (its "
+                  "keyframes exactly, so none is ever joined), output written to disk by a thread whose writes are "
+                  "waited for inside the timed sections, JIT and input making excluded). CPU s = user + system "
+                  "seconds of every thread: the whole command's, and the kernel process's inside its timed "
+                  "sections. "
                   f"Start-up = the command on a 2-frame folder ({cli_rows_[0]['startup_s']:.2f} s, fastest of 3); "
-                  "\"after start-up\" = kernel s / (end-to-end s - start-up). Each figure is the fastest of 3 runs, "
+                  "\"after start-up\" = kernel s / (end-to-end s - start-up); \"marginal\" = the kernel's extra "
+                  "seconds over the command's from the previous duration of the same input to this one (fixed costs "
+                  "cancel: the throughput on longer inputs). Each figure is the fastest of 3 runs, "
                   "end to end and kernel alternating; peak RSS the largest of the 3; load = 1-minute load average "
                   "when the row started.", "",
                   "| input | camera s | intervals | end-to-end s | kernel s | throughput vs kernel | after start-up "
-                  "| peak RSS end-to-end MiB | peak RSS kernel MiB | load |", "|---|---|---|---|---|---|---|---|---|---|"]
+                  "| marginal | CPU s end-to-end / kernel | peak RSS end-to-end MiB | peak RSS kernel MiB | load |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in cli_rows_:
+            marg = r.get("e2e_vs_kernel_marginal", "")
             lines.append(f"| {r['input']} | {r['camera_s']:g} | {r['intervals']} | {r['e2e_wall_s']:.2f} | "
                          f"{r['kernel_wall_s']:.2f} | {r['e2e_vs_kernel']:.2f} | {r['e2e_vs_kernel_after_startup']:.2f} | "
+                         f"{'' if marg == '' else f'{marg:.2f}'} | {r.get('e2e_cpu_s', float('nan')):.2f} / "
+                         f"{r.get('kernel_cpu_s', float('nan')):.2f} | "
                          f"{r['e2e_peak_rss_mib']:.0f} | {r['kernel_peak_rss_mib']:.0f} | {r.get('load_1min', float('nan')):.1f} |")
+    goals = goal_lines(rows, mem_rows, cli_rows_ or [])
+    if goals:
+        lines += ["", "## Goals (issue 12)", ""] + goals
     lines.append("")
     write_text_atomic(out_dir / "benchmark.md", "\n".join(lines))
     return out_dir / "benchmark.md"
+
+
+def _flat(values, tol: float = 1.15) -> bool:
+    """Flat in duration: the largest value at most ``tol`` times the smallest."""
+    return max(values) <= tol * min(values)
+
+
+def goal_lines(rows, mem_rows, cli_rows_) -> list[str]:
+    """The issue's goals, each with the figures of this run that decide it ("met" / "not met")."""
+    out = []
+    say = lambda ok: "**met**" if ok else "**not met**"  # noqa: E731
+    fast = [r for r in rows if r["model"] == "elssim" and r["implementation"] == "fast"]
+    for reset in sorted({r.get("reset", "") for r in fast}):
+        dim = [r for r in fast if r.get("reset", "") == reset and r["lux"] <= 5]
+        if dim:
+            out.append(f"- kernel (elssim, {reset or 'profile'} reset) at least real time at <= 5 lux: "
+                       f"{say(all(r['realtime_factor'] >= 1 for r in dim))} ("
+                       + ", ".join(f"{r['realtime_factor']:.2f}x at {r['lux']:g} lux" for r in dim) + ")")
+        bright = [r for r in fast if r.get("reset", "") == reset and r["lux"] >= 500]
+        if bright:
+            out.append(f"- kernel (elssim, {reset or 'profile'} reset) at least 10x the reference at 500 lux: "
+                       f"{say(all(r['speedup_vs_reference'] >= 10 for r in bright))} ("
+                       + ", ".join(f"{r['speedup_vs_reference']:.1f}x" for r in bright) + ")")
+    if len(mem_rows) > 1:
+        vals = [r["peak_traced_mib"] for r in mem_rows]
+        out.append(f"- kernel peak memory flat in duration: {say(_flat(vals))} ("
+                   + ", ".join(f"{v:.1f}" for v in vals) + " MiB traced)")
+    for kind in dict.fromkeys(r["input"] for r in cli_rows_):
+        rs = [r for r in cli_rows_ if r["input"] == kind]
+        last = rs[-1]
+        marg = [r["e2e_vs_kernel_marginal"] for r in rs if r.get("e2e_vs_kernel_marginal", "") != ""]
+        text = (f"- `render2spike simulate` from a {kind}, at least 0.8x the kernel's throughput: end to end "
+                f"{say(last['e2e_vs_kernel'] >= 0.8)} at {last['camera_s']:g} s ({last['e2e_vs_kernel']:.2f}x, "
+                f"start-up included)")
+        if marg:
+            text += f"; marginal throughput {say(marg[-1] >= 0.8)} ({marg[-1]:.2f}x from {rs[-2]['camera_s']:g} to " \
+                    f"{last['camera_s']:g} s)"
+        out.append(text)
+        if len(rs) > 1:
+            vals = [r["e2e_peak_rss_mib"] for r in rs]
+            out.append(f"- `render2spike simulate` from a {kind}, peak memory flat in duration: {say(_flat(vals))} ("
+                       + ", ".join(f"{v:.0f}" for v in vals) + " MiB for "
+                       + ", ".join(f"{r['camera_s']:g}" for r in rs) + " s)")
+    return out
 
 
 def main(argv=None):
@@ -446,12 +560,14 @@ def main(argv=None):
     ap.add_argument("--no-memory-scan", action="store_true", help="skip the peak-memory-vs-duration rows")
     ap.add_argument("--quick", action="store_true", help="smoke run: 0.2 s of camera time, 100 reference intervals")
     ap.add_argument("--no-cli", action="store_true", help="skip `render2spike simulate` end to end vs the kernel")
-    ap.add_argument("--cli-frames", type=float, nargs="+", default=[0.5, 1.0, 2.0],
-                    help="camera seconds of the frames-folder inputs (default 0.5 1 2)")
+    ap.add_argument("--cli-frames", type=float, nargs="+", default=[1.0, 2.0, 4.0],
+                    help="camera seconds of the frames-folder inputs (800 kB per keyframe at 1 kHz: 3.2 GB of "
+                         "temporary files for 4 s; default 1 2 4)")
     ap.add_argument("--cli-npz", type=float, nargs="*", default=[0.5, 2.0],
                     help="camera seconds of the keyframe .npz inputs (rate_e + t_s, 1 kHz; default 0.5 2)")
-    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.1, 0.2, 0.5],
-                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s; default 0.1 0.2 0.5)")
+    ap.add_argument("--cli-npy", type=float, nargs="+", default=[0.2, 0.5, 1.0],
+                    help="camera seconds of the per-interval .npy inputs (400 MB per 0.05 s: an 8 GB temporary file "
+                         "for 1 s; default 0.2 0.5 1)")
     ap.add_argument("--only-cli", action="store_true", help="only the end-to-end section")
     ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--one", help=argparse.SUPPRESS)

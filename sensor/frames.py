@@ -31,6 +31,7 @@ image, as seen by the camera).
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -248,17 +249,24 @@ _EXR_MAGIC = 20000630
 _EXR_PIXEL_TYPES = {0: "<u4", 1: "<f2", 2: "<f4"}  # UINT, HALF, FLOAT
 
 
-def _exr_channel_fast(data: bytes, name: str):
-    """(time_s or None, channel ``name`` (H, W)) of an uncompressed single-part scanline EXR held in ``data``:
-    a read-only view of ``data`` (float32, float16 or uint32 as stored); None for any other file
-    (compressed, tiled, deep, multi-part, subsampled, without that channel, damaged), which the caller
-    then hands to OpenEXR.
+def _nul(data, pos: int) -> int:
+    """Index of the next NUL byte in ``data`` (bytes, bytearray or mmap) from ``pos``; ValueError if none."""
+    end = data.find(b"\0", pos)
+    if end < 0:
+        raise ValueError("unterminated string")
+    return end
+
+
+def _exr_header(data, name: str):
+    """The layout of channel ``name`` in an uncompressed single-part scanline EXR held in ``data`` (bytes,
+    bytearray or mmap), from its header alone: ``(pos, H, W, y0, line, offset, dtype, time_attr)`` -- the
+    offset table's position, the size, the first scanline's ``y``, the bytes of one scanline's channel data,
+    the channel's byte offset in it, its dtype and the ``time_s`` attribute's (type, position, size) or None.
+    None for any other file (compressed, tiled, deep, multi-part, subsampled, without that channel).
 
     Layout (OpenEXR file format): magic, version, header attributes (name, type, size, value) up to an
     empty name, an offset table of one uint64 per scanline block, then per scanline ``y`` (int32), the
-    data size (int32) and every channel's row in the header's channel order. Every block's offset, ``y``
-    and size is checked before the channel is sliced out of the rows; the other channels are never
-    converted.
+    data size (int32) and every channel's row in the header's channel order.
     """
     import struct
     try:
@@ -267,13 +275,13 @@ def _exr_channel_fast(data: bytes, name: str):
             return None  # not EXR 2.0 single-part scanline (0x400 = long names, allowed)
         pos, attrs = 8, {}
         while True:
-            end = data.index(b"\0", pos)
+            end = _nul(data, pos)
             if end == pos:
                 pos += 1
                 break
-            tend = data.index(b"\0", end + 1)
+            tend = _nul(data, end + 1)
             (size,) = struct.unpack_from("<i", data, tend + 1)
-            attrs[data[pos:end]] = (data[end + 1:tend], tend + 5, size)
+            attrs[bytes(data[pos:end])] = (bytes(data[end + 1:tend]), tend + 5, size)
             pos = tend + 5 + size
         if attrs[b"compression"][0] != b"compression" or data[attrs[b"compression"][1]] != 0:
             return None
@@ -283,7 +291,7 @@ def _exr_channel_fast(data: bytes, name: str):
         _, at, size = attrs[b"channels"]
         stop, line, offset, dtype = at + size - 1, 0, None, None
         while at < stop:  # name\0, pixel type (int32), pLinear + 3 reserved bytes, x and y sampling (int32)
-            end = data.index(b"\0", at)
+            end = _nul(data, at)
             ptype, _, xs, ys = struct.unpack_from("<iiii", data, end + 1)
             if ptype not in _EXR_PIXEL_TYPES or xs != 1 or ys != 1:
                 return None
@@ -293,27 +301,59 @@ def _exr_channel_fast(data: bytes, name: str):
             at = end + 17
         if offset is None or H < 1 or W < 1:
             return None
-        stride = 8 + line
-        table = np.frombuffer(data, "<u8", H, pos)
-        first = pos + 8 * H
-        if len(data) < first + stride * H or \
-                np.any(table != first + stride * np.arange(H, dtype=np.uint64)):
-            return None  # blocks not stored back to back in scanline order
-        rows = np.frombuffer(data, np.uint8, stride * H, first).reshape(H, stride)
-        head = np.ascontiguousarray(rows[:, :8]).view("<i4")
-        if np.any(head[:, 0] != y0 + np.arange(H)) or np.any(head[:, 1] != line):
-            return None
-        arr = rows[:, 8 + offset:8 + offset + W * dtype.itemsize].view(dtype)  # (H, W), a view of ``data``
-        time_s = None
-        if b"time_s" in attrs:
-            atype, at, size = attrs[b"time_s"]
-            if atype == b"double" and size == 8:
-                (time_s,) = struct.unpack_from("<d", data, at)
-            elif atype == b"float" and size == 4:
-                (time_s,) = struct.unpack_from("<f", data, at)
-        return time_s, arr
+        return pos, H, W, y0, line, offset, dtype, attrs.get(b"time_s")
     except (KeyError, ValueError, IndexError, struct.error):
         return None
+
+
+def _exr_views(data, hdr):
+    """(offset table uint64 (H,), scanline heads int32 (H, 2) = (y, size), the channel (H, W)) as views of
+    ``data`` for the layout ``hdr`` (:func:`_exr_header`), or None when ``data`` is too short. Nothing is
+    checked here."""
+    pos, H, W, _, line, offset, dtype, _ = hdr
+    stride = 8 + line
+    first = pos + 8 * H
+    if len(data) < first + stride * H:
+        return None
+    table = np.frombuffer(data, "<u8", H, pos)
+    rows = np.frombuffer(data, np.uint8, stride * H, first).reshape(H, stride)
+    return table, rows[:, :8].view("<i4"), rows[:, 8 + offset:8 + offset + W * dtype.itemsize].view(dtype)
+
+
+def _exr_time(data, time_attr):
+    """The ``time_s`` attribute's value (double or float) or None."""
+    import struct
+    if time_attr is None:
+        return None
+    atype, at, size = time_attr
+    if atype == b"double" and size == 8:
+        return struct.unpack_from("<d", data, at)[0]
+    if atype == b"float" and size == 4:
+        return struct.unpack_from("<f", data, at)[0]
+    return None
+
+
+def _exr_channel_fast(data, name: str):
+    """(time_s or None, channel ``name`` (H, W)) of an uncompressed single-part scanline EXR held in ``data``
+    (bytes, bytearray or mmap): a view of ``data`` (float32, float16 or uint32 as stored); None for any
+    other file (compressed, tiled, deep, multi-part, subsampled, without that channel, damaged), which the
+    caller then hands to OpenEXR.
+
+    Every block's offset, ``y`` and size is checked before the channel is sliced out of the rows
+    (:func:`_exr_header` gives the layout); the other channels are never converted.
+    """
+    hdr = _exr_header(data, name)
+    views = None if hdr is None else _exr_views(data, hdr)
+    if views is None:
+        return None
+    table, heads, arr = views
+    pos, H, _, y0, line, _, _, time_attr = hdr
+    first = pos + 8 * H
+    if np.any(table != first + (8 + line) * np.arange(H, dtype=np.uint64)):
+        return None  # blocks not stored back to back in scanline order
+    if np.any(heads[:, 0] != y0 + np.arange(H)) or np.any(heads[:, 1] != line):
+        return None
+    return _exr_time(data, time_attr), arr
 
 
 def read_phi(path, out=None) -> tuple[float, np.ndarray]:
@@ -348,6 +388,8 @@ class FrameSequence:
 
     folder: Path
     manifest: dict
+    _buf: bytearray = field(default_factory=bytearray, repr=False, compare=False)  # read_scaled's file buffer
+    _hdr: tuple | None = field(default=None, repr=False, compare=False)  # read_scaled's last header layout
 
     @property
     def times_s(self) -> np.ndarray:
@@ -381,6 +423,70 @@ class FrameSequence:
         self._check(i, time_s, phi.shape)
         check_light(phi, path, "Phi")
         return phi
+
+    def read_scaled(self, i: int, scale: float, out) -> np.ndarray:
+        """Phi of frame ``i`` times ``scale``, written into ``out`` (float32 (H, W)) and returned: what the
+        sensor stage reads (``scale`` = :func:`sensor.units.photoelectron_scale` gives rate_e
+        [e-/interval], bit for bit as :func:`sensor.units.photoelectron_rate` of :meth:`read_phi`).
+
+        Same checks and errors as :meth:`read_phi` (size, timestamp, Phi finite and >= 0), in one pass:
+        an uncompressed scanline file (what :func:`write_frame` writes) is read into a byte buffer that
+        this sequence keeps and reuses (no fresh memory per frame), and Phi is scaled and checked
+        straight out of it (:func:`sensor.fastio.scale_checked`). Other EXR files go through
+        :meth:`read_phi`. The buffer makes this method for one thread at a time per sequence.
+        """
+        from .fastio import exr_scale_checked, scale_checked
+        path = self.path(i)
+        fast = None
+        try:
+            with open(path, "rb", buffering=0) as fh:
+                size = os.fstat(fh.fileno()).st_size
+                if len(self._buf) != size:  # frames of one folder share a size: allocated once
+                    self._buf = bytearray(size)
+                view, got = memoryview(self._buf), 0
+                while got < size:
+                    k = fh.readinto(view[got:])
+                    if not k:
+                        break
+                    got += k
+        except OSError:
+            got = -1
+        if got == size:
+            buf, hit = self._buf, self._hdr
+            # the header of the previous frame, but for the time: same layout; the offset table, every
+            # scanline's y and size, and Phi's values are checked while Phi is scaled (one compiled pass)
+            if hit is not None and hit[0] == bytes(buf[:hit[2]]) and hit[1] == bytes(buf[hit[3]:hit[4]]):
+                views = _exr_views(buf, hit[5])
+                if views is not None and views[2].dtype == np.float32:
+                    pos, H, _, y0, line, _, _, tattr = hit[5]
+                    if out.shape != views[2].shape:
+                        raise ValueError(f"out is {out.shape}; frame {i} is {views[2].shape}")
+                    bad = exr_scale_checked(views[0], views[1], views[2], pos + 8 * H, 8 + line, y0, line, scale, out)
+                    if bad >= 0:
+                        self._check(i, float(_exr_time(buf, tattr)), views[2].shape)
+                        if bad:
+                            check_light(views[2], path, "Phi")  # names the first bad pixel
+                        return out
+            fast = _exr_channel_fast(buf, "Phi")
+            hdr = _exr_header(buf, "Phi") if fast is not None and fast[0] is not None else None
+            if hdr is not None and hdr[7] is not None:  # remember the layout, keyed by the header but for the time
+                _, tat, tsize = hdr[7]
+                self._hdr = (bytes(buf[:tat]), bytes(buf[tat + tsize:hdr[0]]), tat, tat + tsize, hdr[0], hdr)
+        if fast is None or fast[0] is None:  # not our layout (or unreadable): the general path, same errors
+            phi = self.read_phi(i)
+            if out.shape != phi.shape:
+                raise ValueError(f"out is {out.shape}; frame {i} is {phi.shape}")
+            scale_checked(phi, scale, out)
+            return out
+        time_s, phi = float(fast[0]), fast[1]
+        self._check(i, time_s, phi.shape)
+        if out.shape != phi.shape:
+            raise ValueError(f"out is {out.shape}; frame {i} is {phi.shape}")
+        if phi.dtype != np.float32:
+            phi = phi.astype(np.float32)
+        if scale_checked(phi, scale, out):
+            check_light(phi, path, "Phi")  # names the first bad pixel
+        return out
 
     def _check(self, i: int, time_s: float, shape) -> None:
         if shape != self.shape:

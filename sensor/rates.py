@@ -154,6 +154,55 @@ def interval_rates(rate_e, t_s=None, n_intervals: int | None = None, interval_s:
     return (W @ rate_e[lo:hi + 1].reshape(K, H * Wd)).reshape(n, H, Wd)
 
 
+def _knots_of(t, bounds):
+    """(lo, hi, keep) for intervals with boundaries ``bounds`` [s] and keyframe times ``t`` [s]: the
+    keyframes lo..hi (inclusive) determine those intervals; ``keep`` is the last keyframe at or before
+    their end (where the next block starts)."""
+    lo = max(int(np.searchsorted(t, bounds[0], "right")) - 1, 0)
+    hi = min(int(np.searchsorted(t, bounds[-1], "left")), t.size - 1)
+    hi = max(hi, lo + 1)
+    keep = max(int(np.searchsorted(t, bounds[-1], "right")) - 1, 0)
+    return lo, hi, keep
+
+
+def block_keyframe_rows(t_s, block: int, interval_s: float = INTERVAL_S) -> list[tuple[int, int]]:
+    """Keyframe rows to read per simulator block so that no block's keyframes span two reads.
+
+    For keyframe times ``t_s`` (K,) [s] and blocks of ``block`` intervals from ``t_s[0]`` (the last one
+    partial), the row ranges ``[i, j)`` to feed a :class:`RateSchedule` one after the other. The plan
+    follows the schedule's own rules, step by step: a block runs as soon as the keyframes fed cover it
+    (:meth:`RateSchedule.covered`, with its round-off tolerance), and afterwards the schedule keeps the
+    keyframes from the last one at or before the block's end. Each range starts at the first keyframe
+    the schedule still holds, so with ``overlap`` = the rows it repeats
+    (``RateSchedule.add(..., overlap=)``) the schedule replaces them and every block's keyframes are
+    one array (a view of one chunk) instead of rows joined from two chunks -- a copy of every
+    keyframe, serial with the kernel. Ranges that would add no row are skipped; every row
+    ``0 .. K-1`` is in some range.
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    K = int(t.size)
+    if K < 2:
+        return [(0, K)] if K else []
+    total = n_intervals_spanned(t[0], t[-1], interval_s)
+    # intervals that keyframes 0..k cover, as RateSchedule.covered() counts them (non-decreasing in k)
+    spanned = np.floor((t - t[0]) / float(interval_s) + _N_INTERVALS_EPS).astype(np.int64)
+    out: list[tuple[int, int]] = []
+    end = 0  # rows [0, end) fed so far
+    held = 0  # the first row the schedule still holds
+    for m0 in range(0, total, block):
+        m1 = min(m0 + block, total)
+        need = int(np.searchsorted(spanned, m1, "left")) + 1  # rows up to the first that covers the block
+        if need > end:
+            out.append((held, need))
+            end = need
+        # the block runs now; the schedule keeps the keyframes from the last one at or before its end
+        bound = float(interval_bounds_s(t[0], m1, m1, interval_s)[0])
+        held += max(int(np.searchsorted(t[held:end], bound, "right")) - 1, 0)
+    if end < K:  # keyframes after the last whole interval: fed as well (they change nothing)
+        out.append((held, K))
+    return out
+
+
 class Segments:
     """The rate of a block of intervals as affine pieces (the input of event-driven models).
 
@@ -291,7 +340,8 @@ class RateSchedule:
         self._offset = 0  # per_interval mode: index of the first buffered interval
         self.t0_s: float | None = None
 
-    def add(self, rate_e, t_s=None, copy: bool = True, *, check: bool = True, owned: bool = False) -> None:
+    def add(self, rate_e, t_s=None, copy: bool = True, *, check: bool = True, owned: bool = False,
+            overlap: int = 0) -> None:
         """Buffer keyframes ``rate_e`` (K, H, W) at times ``t_s`` (K,) [s] (no ``t_s`` in per-interval mode).
 
         ``copy=False`` keeps a reference to the caller's array instead of a private copy
@@ -302,6 +352,9 @@ class RateSchedule:
         kept as it is, without a copy now or at :meth:`detach`.
         ``check=False`` skips :func:`check_rates` (finite, >= 0) for rates the caller has
         already checked (timestamps are always checked).
+        ``overlap=n`` (keyframes only): the first ``n`` rows repeat the last ``n`` keyframes added
+        (same times, same rates; the times are checked): they replace those rows, so the rows of
+        a block can lie in one chunk (:func:`block_keyframe_rows`).
         """
         given = rate_e
         rate_e = np.asarray(rate_e, dtype=np.float32)
@@ -309,17 +362,31 @@ class RateSchedule:
         shared = isinstance(given, np.ndarray) and np.may_share_memory(rate_e, given)
         if rate_e.ndim != 3:
             raise InputError(f"rate_e must be (K, H, W); got shape {rate_e.shape}", field="rate_e")
+        if self._shape is not None and self._shape != rate_e.shape[1:]:
+            raise InputError(f"frame shape changed from {self._shape} to {rate_e.shape[1:]}", field="rate_e")
         if check:
             check_rates(rate_e)
         if self.per_interval:
             if t_s is not None:
                 raise InputError("this stream takes one rate per interval (t_s=None)", field="t_s")
+            if overlap:
+                raise InputError("overlap applies to keyframes (with t_s), not to one rate per interval",
+                                 field="overlap")
         else:
             if t_s is None:
                 raise InputError("this stream takes keyframes with timestamps t_s", field="t_s")
             t_new = np.asarray(t_s, dtype=np.float64).reshape(-1)
             if t_new.size != rate_e.shape[0]:
                 raise InputError(f"{t_new.size} timestamps for {rate_e.shape[0]} keyframes", field="t_s")
+            overlap = int(overlap)
+            if overlap:
+                if not 0 < overlap <= min(self._n, t_new.size) or \
+                        not np.array_equal(t_new[:overlap], self._t[self._t.size - overlap:]):
+                    raise InputError(f"overlap={overlap}: the first {overlap} keyframe time(s) of this chunk must "
+                                     f"repeat the last ones buffered ({self._t[-overlap:].tolist() if self._n else []})",
+                                     field="t_s")
+                self._t = self._t[:self._t.size - overlap]
+                self._drop_last(overlap)
             check_times(t_new, offset=self._t.size)
             allt = np.concatenate([self._t, t_new])
             if np.any(np.diff(allt) <= 0):
@@ -329,8 +396,6 @@ class RateSchedule:
             if self.t0_s is None and t_new.size:
                 self.t0_s = float(t_new[0])
             self._t = allt
-        if self._shape is not None and self._shape != rate_e.shape[1:]:
-            raise InputError(f"frame shape changed from {self._shape} to {rate_e.shape[1:]}", field="rate_e")
         self._shape = rate_e.shape[1:]
         if rate_e.shape[0]:
             if owned:
@@ -372,6 +437,20 @@ class RateSchedule:
             self._scratch = np.empty((max(n, 2 * n if self._scratch is None else n),) + row, np.float32)
         return np.concatenate(parts, out=self._scratch[:n])
 
+    def _drop_last(self, n: int) -> None:
+        """Forget the last ``n`` buffered rows."""
+        while n > 0 and self._chunks:
+            c = self._chunks[-1]
+            if c.shape[0] <= n:
+                n -= c.shape[0]
+                self._n -= c.shape[0]
+                self._chunks.pop()
+                self._borrowed.pop()
+            else:
+                self._chunks[-1] = c[:c.shape[0] - n]
+                self._n -= n
+                n = 0
+
     def _drop(self, n: int) -> None:
         """Forget the first ``n`` buffered rows."""
         while n > 0 and self._chunks:
@@ -402,12 +481,7 @@ class RateSchedule:
 
     def _knot_range(self, m0: int, m1: int):
         bounds = interval_bounds_s(self.t0_s, m0, m1, self.interval_s)
-        t = self._t
-        lo = max(int(np.searchsorted(t, bounds[0], "right")) - 1, 0)
-        hi = min(int(np.searchsorted(t, bounds[-1], "left")), t.size - 1)
-        hi = max(hi, lo + 1)
-        # keep the last knot at or before the end of this block: the next block starts there
-        keep = max(int(np.searchsorted(t, bounds[-1], "right")) - 1, 0)
+        lo, hi, keep = _knots_of(self._t, bounds)
         return bounds, lo, hi, keep
 
     def _forget_knots(self, keep: int) -> None:

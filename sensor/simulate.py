@@ -84,7 +84,8 @@ class SpikeSimulator:
         out = self.model.run_block(self.schedule.rates(m0, m1), self.state, rng)
         return pack_frames(out) if packed else out
 
-    def _iter(self, rate_e, t_s, packed: bool, checked: bool = False, owned: bool = False) -> Iterator[np.ndarray]:
+    def _iter(self, rate_e, t_s, packed: bool, checked: bool = False, owned: bool = False,
+              overlap: int = 0) -> Iterator[np.ndarray]:
         if self.finished:
             raise InputError("this stream is finished; start a new SpikeSimulator")
         rate_e = self._check_shape(rate_e)
@@ -92,7 +93,7 @@ class SpikeSimulator:
         # few rows still needed afterwards are copied by detach() before control returns for good
         # (not even those when the caller hands the array over: owned)
         self.schedule.add(rate_e, None if t_s is None else np.atleast_1d(np.asarray(t_s, np.float64)), copy=False,
-                          check=not checked, owned=owned)
+                          check=not checked, owned=owned, overlap=overlap)
         try:
             while self.schedule.covered() >= self.n_done + self.block:
                 out = self._run(self.n_done, self.n_done + self.block, packed)
@@ -105,8 +106,8 @@ class SpikeSimulator:
         """Add rate data and yield spike blocks bool (B, H, W) as whole blocks become available."""
         return self._iter(rate_e, t_s, packed=False)
 
-    def iter_feed_packed(self, rate_e, t_s=None, *, checked: bool = False, owned: bool = False
-                         ) -> Iterator[np.ndarray]:
+    def iter_feed_packed(self, rate_e, t_s=None, *, checked: bool = False, owned: bool = False,
+                         overlap: int = 0) -> Iterator[np.ndarray]:
         """Like :meth:`iter_feed`, yielding bit-packed blocks uint8 (B, ceil(H*W/8)).
 
         Frame layout (:func:`pack_frames`): image orientation, pixel ``p = r*W + c``
@@ -117,9 +118,12 @@ class SpikeSimulator:
         every rate is finite and >= 0 (:func:`sensor.rates.check_rates`; the reader checked it,
         naming its file and row); ``owned=True`` hands ``rate_e`` over (a float32 array the
         caller never modifies again), so the keyframes still needed after this call are kept
-        without a copy. Neither changes the spikes.
+        without a copy. ``overlap=n``: the first ``n`` keyframes repeat the last ``n`` of the previous
+        call (:meth:`RateSchedule.add`); a reader that delivers the rows of each block
+        (:func:`sensor.rates.block_keyframe_rows`) this way spares the copy that joins keyframes
+        spanning two chunks. None of these changes the spikes.
         """
-        return self._iter(rate_e, t_s, packed=True, checked=checked, owned=owned)
+        return self._iter(rate_e, t_s, packed=True, checked=checked, owned=owned, overlap=overlap)
 
     def feed(self, rate_e, t_s=None) -> np.ndarray:
         """Add rate data; return the spikes bool (n, H, W) of the intervals completed by it."""

@@ -50,6 +50,18 @@ def photons_per_joule(wavelength_nm):
     return 1.0 / photon_energy_j(wavelength_nm)
 
 
+def photoelectron_scale(pixel_pitch_m: float, fill_factor: float, interval_s: float = INTERVAL_S) -> float:
+    """The factor [m^2 s / interval] that turns Phi [e-/(s m^2)] into rate_e [e-/interval]:
+    ``pixel_pitch_m ** 2 * fill_factor * interval_s`` (float64).
+
+    :func:`photoelectron_rate` multiplies by it (each product in float64, rounded once to
+    float32); streaming readers that fuse the conversion into their read
+    (:meth:`sensor.frames.FrameSequence.read_scaled`) take it from here, so the factor is
+    defined once.
+    """
+    return float(pixel_pitch_m) ** 2 * float(fill_factor) * float(interval_s)
+
+
 def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s: float = INTERVAL_S, *, out=None):
     """Convert focal-plane QE-weighted photon irradiance to photoelectrons per interval.
 
@@ -73,7 +85,7 @@ def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s
         ``rate_e`` = expected photoelectrons per interval per pixel [e-/interval]
         = phi * pitch^2 * fill_factor * T_r.
     """
-    scale = float(pixel_pitch_m) ** 2 * float(fill_factor) * float(interval_s)
+    scale = photoelectron_scale(pixel_pitch_m, fill_factor, interval_s)
     phi = np.asarray(phi)
     if out is None:
         out = np.empty(phi.shape, np.float32)
@@ -85,7 +97,7 @@ def photoelectron_rate(phi, pixel_pitch_m: float, fill_factor: float, interval_s
 
 def rate_e_to_phi(rate_e, pixel_pitch_m: float, fill_factor: float, interval_s: float = INTERVAL_S):
     """Inverse of :func:`photoelectron_rate`: e-/interval -> e-/(s m^2)."""
-    scale = float(pixel_pitch_m) ** 2 * float(fill_factor) * float(interval_s)
+    scale = photoelectron_scale(pixel_pitch_m, fill_factor, interval_s)
     return np.asarray(rate_e, dtype=np.float64) / scale
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import sys
 import time
 import zipfile
 import zlib
@@ -57,9 +58,11 @@ def register(sub) -> None:
                         "the charge reaches the threshold; vidar-default) or 'interval' (Algorithm 2 as published)")
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator instead of the fast event-driven one")
-    p.add_argument("--chunk", type=int, default=32, metavar="K",
-                   help="keyframes read per step; a reader thread keeps about two simulator blocks of them read "
-                        "ahead, at most 256 MB (memory bound; the result does not depend on it; default 32)")
+    p.add_argument("--chunk", type=int, default=None, metavar="K",
+                   help="keyframes read per step (the result does not depend on it). Default: the keyframes of "
+                        "one simulator block (1000 intervals) per read, so no block's keyframes are joined from "
+                        "two reads, or 32 when a block's keyframes exceed 64 MB. A reader thread keeps about two "
+                        "blocks of keyframes read ahead, at most 256 MB, and reuses up to 6 chunk buffers")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p)
     p.set_defaults(func=run)
@@ -103,31 +106,112 @@ class _NpzMember:
         self.row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
         self.pos = 0
 
-    def rows(self, i: int, j: int) -> np.ndarray:
+    def rows(self, i: int, j: int, out=None) -> np.ndarray:
+        """Rows [i, j) (the next ones), decoded into ``out`` (an array of this member's dtype and shape
+        (j - i, ...)) when given, else into a new array."""
         if i != self.pos:
             raise ValueError("rows must be read in order")
         n = j - i
-        buf = bytearray(n * self.row_bytes)
-        view = memoryview(buf)
+        if out is None:
+            out = np.empty((n,) + self.shape[1:], self.dtype)
+        view = memoryview(out.reshape(-1).view(np.uint8))
         got = 0
-        while got < len(buf):
+        while got < len(view):
             k = self.fh.readinto(view[got:])
             if not k:
                 raise ValueError(f"truncated array: rows {i}..{j - 1} of {self.shape[0]}")
             got += k
         self.pos = j
-        return np.frombuffer(buf, self.dtype).reshape((n,) + self.shape[1:])
+        return out
 
     def close(self):
         self.fh.close()
         self.zf.close()
 
 
+def _stored_member_map(path: Path, name: str):
+    """A read-only memory map of array ``name`` of an .npz when it is stored (not deflated, not encrypted),
+    like ``np.load(..., mmap_mode='r')`` of an .npy; else None.
+
+    A stored member's bytes lie in the file as they are: the map spares reading them through the zip
+    stream, which copies every byte twice. The member's CRC-32 is still checked: ``crc`` =
+    (expected CRC, CRC of the member's bytes before the array) is returned with the map, and the reader
+    folds in the rows as it hands them out (:meth:`RateSource._crc_rows`).
+    Returns (map, crc) or None. Fortran-ordered arrays are left to the stream reader (which refuses
+    them, as for a deflated member).
+    """
+    import struct
+    with zipfile.ZipFile(path) as zf:
+        try:
+            info = zf.getinfo(name + ".npy")
+        except KeyError:
+            return None
+        if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:
+            return None
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset)
+        local = fh.read(30)
+        if len(local) < 30 or local[:4] != b"PK\x03\x04":
+            return None
+        n_name, n_extra = struct.unpack_from("<HH", local, 26)
+        start = info.header_offset + 30 + n_name + n_extra
+        fh.seek(start)
+        version = np.lib.format.read_magic(fh)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+            np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(fh)
+        offset = fh.tell()
+        if dtype.hasobject or fortran or len(shape) == 0 or \
+                offset - start + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize != info.file_size:
+            return None
+        fh.seek(start)
+        crc = zlib.crc32(fh.read(offset - start))
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=tuple(shape)), (info.CRC, crc)
+
+
+class _ChunkPool:
+    """Float32 chunk arrays recycled once nobody else holds them.
+
+    A fresh 20 MB array costs thousands of page faults and the zeroing of its memory (numpy asks for
+    transparent huge pages, which may also compact memory), on a machine whose cores the kernel
+    keeps busy; chunks of one input share a shape, so the reader takes back an array the simulator
+    has dropped (no reference left but the pool's: views of it count, through their ``base``).
+    """
+
+    def __init__(self, keep: int = 6):
+        self.keep = keep
+        self.arrays: list[np.ndarray] = []
+        # what sys.getrefcount reports, in this very loop, for an array nobody else holds (the pool's list,
+        # the loop variable, the call's argument: 3 on CPython 3.11-3.13): measured, not assumed, so an
+        # interpreter that counts differently cannot make the pool hand out an array still in use. Pooling
+        # is off where reference counts are deferred (free-threaded builds).
+        self._free = self._free_count() if getattr(sys, "_is_gil_enabled", lambda: True)() else None
+
+    def _free_count(self) -> int:
+        probe = [np.empty(1, np.float32)]
+        count = None
+        for a in probe:
+            count = sys.getrefcount(a)
+        return count
+
+    def take(self, shape) -> np.ndarray:
+        shape = tuple(shape)
+        for a in self.arrays if self._free is not None else ():
+            if a.shape == shape and sys.getrefcount(a) == self._free:
+                return a
+        a = np.empty(shape, np.float32)
+        if len(self.arrays) >= self.keep:
+            self.arrays.pop(0)
+        self.arrays.append(a)
+        return a
+
+
 class RateSource:
     """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from any supported INPUT.
 
-    Nothing is read whole: an ``.npy`` is memory-mapped and handed out in row chunks whose pages are
-    dropped again once used, an ``.npz`` member is decoded chunk by chunk from the zip stream, and a
+    Nothing is read whole: an ``.npy`` (and an ``.npz`` whose ``rate_e`` is stored, as ``np.savez`` writes
+    it) is memory-mapped and handed out in row chunks whose pages are dropped again once used, a deflated
+    ``.npz`` member (``np.savez_compressed``) is decoded chunk by chunk from the zip stream, and a
     frames folder's EXR files are read (the Phi channel only). A reader thread reads and checks the
     next chunk while the kernel (which releases the GIL) simulates the current one (:meth:`chunks`).
     Memory is a few chunks, flat in duration.
@@ -139,6 +223,8 @@ class RateSource:
         self.kind = None
         self._member = None
         self._mm = None
+        self._crc = None  # a memory-mapped stored .npz member: its CRC-32, folded in as rows are handed out
+        self._pool = _ChunkPool()
         self.rate = None
         if self.path.is_dir():
             from sensor.frames import read_frames
@@ -157,8 +243,14 @@ class RateSource:
                         raise InputError(f"no array 'rate_e' (has: {', '.join(z.files)})", path=self.path,
                                          field="rate_e")
                     self.t_s = z["t_s"].astype(np.float64) if "t_s" in z else None
-                self._member = _NpzMember(self.path, "rate_e")
-                shape = self._member.shape
+                mapped = _stored_member_map(self.path, "rate_e")
+                if mapped is None:  # deflated (or otherwise not mappable): decoded chunk by chunk
+                    self._member = _NpzMember(self.path, "rate_e")
+                    shape = self._member.shape
+                else:
+                    self.rate, (want, crc) = mapped
+                    self._crc = {"want": want, "crc": crc, "rows": 0}
+                    shape = self.rate.shape
             except InputError:
                 raise
             except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
@@ -227,6 +319,20 @@ class RateSource:
         out = np.frombuffer(self._npy_map(), dtype=m.dtype, count=(j - i) * row, offset=self._npy_offset(i))
         return out.reshape((j - i,) + tuple(m.shape[1:])).astype(np.float32, copy=False)
 
+    def _crc_rows(self, j: int) -> None:
+        """Fold rows up to ``j`` (read in order) into the stored member's CRC-32; at the last row, check it."""
+        from sensor.errors import InputError
+        st = self._crc
+        if j <= st["rows"]:
+            return
+        a, b = self._npy_offset(st["rows"]), self._npy_offset(j)
+        with memoryview(self._npy_map()) as whole, whole[a:b] as part:  # no copy; crc32 releases the GIL
+            st["crc"] = zlib.crc32(part, st["crc"])
+        st["rows"] = j
+        if j == self.n and st["crc"] != st["want"]:
+            raise InputError(f"CRC-32 of member 'rate_e.npy' is {st['crc']:08x}, the zip directory says "
+                             f"{st['want']:08x}: the file is damaged", path=self.path, field="rate_e")
+
     def _release(self, i: int, j: int) -> None:
         """Rows [i, j) are used: drop their pages from this process (.npy only). The data stays in the
         file: a row still referenced is read again from the page cache if touched, unchanged."""
@@ -238,66 +344,112 @@ class RateSource:
         if b > a:
             self._mm.madvise(mmap.MADV_DONTNEED, a, b - a)
 
-    def _read(self, profile, i: int, j: int) -> np.ndarray:
-        from sensor import photoelectron_rate
-        if self.kind == "frames":
-            # only the Phi channel is read (the E channel is not needed here); one conversion per chunk
-            phi = np.empty((j - i,) + self.shape, np.float32)
-            for q in range(i, j):
-                self.frames.read_phi(q, out=phi[q - i])  # checked: finite, >= 0, size and time as in frames.json
-            return photoelectron_rate(phi, profile, out=phi)
+    def _read(self, profile, i: int, j: int, head=None) -> np.ndarray:
+        """Rows [i, j) as rate_e float32 (n, H, W), checked. ``head``: rows already read that repeat
+        just before ``i`` (the overlap of block-aligned reads); they are copied in front."""
         from sensor.errors import InputError
+        from sensor.fastio import count_bad
         from sensor.rates import check_rates
+        ov = 0 if head is None else head.shape[0]
+        if self.kind == "frames":
+            # only the Phi channel is read (the E channel is not needed here), scaled to e-/interval and
+            # checked in the same pass (finite, >= 0, size and time as in frames.json)
+            from sensor.units import photoelectron_scale
+            scale = photoelectron_scale(profile.pixel_pitch_m, profile.fill_factor, profile.interval_s)
+            out = self._pool.take((ov + j - i,) + self.shape)
+            if ov:
+                out[:ov] = head
+            for q in range(i, j):
+                self.frames.read_scaled(q, scale, out[ov + q - i])
+            return out
         try:
             if self._member is not None:
-                rate = self._member.rows(i, j).astype(np.float32, copy=False)
+                if self._member.dtype == np.float32:
+                    out = self._pool.take((ov + j - i,) + self.shape)
+                    self._member.rows(i, j, out=out[ov:])
+                else:
+                    rows = self._member.rows(i, j)
+                    out = self._pool.take((ov + j - i,) + self.shape)
+                    out[ov:] = rows
+                if ov:
+                    out[:ov] = head
+                rate = out
             else:
                 rate = self._npy_rows(i, j)
+                if ov:
+                    rate = np.concatenate([head, rate])
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(f"cannot read rows {i}..{j - 1} of rate_e (truncated or corrupt? {exc})",
                              path=self.path, field="rate_e") from exc
-        check_rates(rate, path=self.path, offset=i)  # checked as it streams in: names the absolute index
+        if count_bad(rate[ov:]):  # one pass; the slow search for the first bad value only on failure
+            check_rates(rate[ov:], path=self.path, offset=i)  # names the absolute index
         return rate
 
-    def chunks(self, profile, size: int, prefetch: int = 1):
-        """Iterator of (rate_e, t_s) chunks of ``size`` rows; with ``prefetch`` = n > 0 a reader thread keeps
-        the next n chunks read ahead, and starts on them at once (before the first ``next``).
+    def chunks(self, profile, bounds, prefetch: int = 1):
+        """Iterator of (rate_e, t_s, overlap) chunks of rows ``bounds`` (a list of ``(i, j)``; each range may
+        begin before the previous one ended: its first ``overlap`` rows repeat the previous chunk's last,
+        as :func:`sensor.rates.block_keyframe_rows` plans them); with ``prefetch`` = n > 0 a reader thread
+        keeps the next n chunks read ahead, and starts on them at once (before the first ``next``).
 
-        Each chunk is checked (finite, >= 0; errors name the file and row) and never modified by this
-        source: a fresh array, or for a float32 .npy a view of the file's read-only memory map, whose
-        pages are dropped from the process once the consumer asks for the next chunk (they are read
-        again from the page cache if still touched). The consumer may keep a chunk
-        (``iter_feed_packed(owned=True)``).
+        Each chunk is checked (finite, >= 0; errors name the file and row) and not modified by this
+        source while anything else holds it: an array of the source's pool (reused only once the
+        consumer has dropped every reference to it, views included), or for a float32 .npy or stored
+        .npz a view of the file's read-only memory map, whose pages are dropped from the process once
+        the consumer asks for the next chunk (they are read again from the page cache if still
+        touched). The consumer may keep a chunk (``iter_feed_packed(owned=True)``). Repeated rows are
+        copied from the previous chunk (a memory map's are part of the view), not read again.
         """
-        bounds = [(i, min(self.n, i + size)) for i in range(0, self.n, size)]
+        bounds = [(int(i), int(j)) for i, j in bounds]
+        for (i0, j0), (i1, j1) in zip(bounds, bounds[1:]):
+            if not (i0 <= i1 <= j0 < j1):
+                raise ValueError(f"row ranges must advance and may only overlap the previous one: {(i0, j0)}, "
+                                 f"{(i1, j1)}")
         depth = int(prefetch)
         if depth < 1 or len(bounds) < 2:
             return self._chunks_plain(profile, bounds)
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
         ex = ThreadPoolExecutor(1, thread_name_prefix="r2s-read")
-        futs = deque(ex.submit(self._read, profile, *b) for b in bounds[:depth])
-        return self._chunks_prefetched(profile, bounds, ex, futs, depth)
+        state = {"prev": None, "end": 0}
+        futs = deque(ex.submit(self._read_next, profile, i, j, state) for i, j in bounds[:depth])
+        return self._chunks_prefetched(profile, bounds, ex, futs, depth, state)
+
+    def _read_next(self, profile, i: int, j: int, state: dict):
+        """The chunk of rows [i, j) given the previous chunk (in ``state``; called in order)."""
+        prev, end = state["prev"], state["end"]
+        ov = end - i if prev is not None else 0
+        if self.rate is not None:  # a memory map: the repeated rows are part of the view, nothing to copy
+            rate = self._read(profile, i, j)
+            if self._crc is not None:
+                self._crc_rows(j)
+        else:
+            rate = self._read(profile, end if ov else i, j, head=prev[prev.shape[0] - ov:] if ov else None)
+        state["prev"], state["end"] = rate, j
+        return rate, ov
 
     def _chunks_plain(self, profile, bounds):
+        state = {"prev": None, "end": 0}
         try:
             for i, j in bounds:
-                yield self._read(profile, i, j), (None if self.t_s is None else self.t_s[i:j])
+                rate, ov = self._read_next(profile, i, j, state)
+                yield rate, (None if self.t_s is None else self.t_s[i:j]), ov
+                del rate
                 self._release(i, j)
         finally:
             self.close()
 
-    def _chunks_prefetched(self, profile, bounds, ex, futs, depth):
+    def _chunks_prefetched(self, profile, bounds, ex, futs, depth, state):
         try:
             for k, (i, j) in enumerate(bounds):
-                rate = futs.popleft().result()
+                rate, ov = futs.popleft().result()
                 if k + depth < len(bounds):
-                    futs.append(ex.submit(self._read, profile, *bounds[k + depth]))
-                yield rate, (None if self.t_s is None else self.t_s[i:j])
+                    futs.append(ex.submit(self._read_next, profile, *bounds[k + depth], state))
+                yield rate, (None if self.t_s is None else self.t_s[i:j]), ov
                 del rate
                 self._release(i, j)
         finally:
             ex.shutdown(wait=True, cancel_futures=True)
+            state["prev"] = None
             self.close()
 
     def close(self):
@@ -328,9 +480,10 @@ def run(args) -> int:
                      seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
                      extra=extra, background=True) as writer, \
             tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
-        for rate, t in chunks:
-            # the reader checked the rates (naming file and row) and hands each fresh chunk over
-            for bits in sim.iter_feed_packed(rate, t, checked=True, owned=True):  # 1 bit per pixel-interval
+        for rate, t, overlap in chunks:
+            # the reader checked the rates (naming file and row) and hands each fresh chunk over; its first
+            # `overlap` keyframes repeat the last ones of the previous chunk (block-aligned reads)
+            for bits in sim.iter_feed_packed(rate, t, checked=True, owned=True, overlap=overlap):
                 writer.write_packed(bits, profile.shape)  # counted, re-ordered and written by a writer thread
                 bar.update(bits.shape[0])
         last = sim.finish_packed()
@@ -345,16 +498,44 @@ def run(args) -> int:
     return 0
 
 
-def read_ahead(src, sim, size: int, max_bytes: int = 256 << 20) -> int:
-    """Chunks of ``size`` rows to keep read ahead: about two simulator blocks' worth of keyframes (with one
-    chunk ahead, a chunk smaller than a block that completes no block leaves the kernel waiting for the
-    next read), at most ``max_bytes`` of them; one for per-interval rates (a chunk is whole blocks)."""
-    if src.per_interval or src.n < 2:
-        return 1
+#: largest read of one simulator block's keyframes for block-aligned reads (else fixed-size chunks)
+ALIGNED_MAX_BYTES = 64 << 20
+
+
+def plan_reads(src, sim, chunk: int | None = None, max_bytes: int = 256 << 20):
+    """(row ranges to read, chunks to keep read ahead) for ``src`` feeding ``sim``.
+
+    * One rate per interval: whole simulator blocks per read (at least ``chunk`` rows), so the schedule
+      takes views of them and never joins rows; one read ahead.
+    * Keyframes, ``chunk`` None: one read per simulator block, its keyframes exactly
+      (:func:`sensor.rates.block_keyframe_rows`; consecutive reads share the one or two keyframes at the
+      block boundary, copied, not read again), so every block's keyframes are one array and the
+      schedule never joins them -- a copy of every keyframe, serial with the kernel, when a block's
+      keyframes spanned two reads. Two reads ahead. Falls back to fixed chunks of 32 when one block's
+      keyframes exceed :data:`ALIGNED_MAX_BYTES`.
+    * Keyframes, ``chunk`` = K: fixed chunks of K keyframes, about two blocks' worth read ahead (with one
+      chunk ahead, a chunk smaller than a block that completes no block leaves the kernel waiting).
+
+    At most ``max_bytes`` of keyframes are read ahead.
+    """
+    row_bytes = 4 * src.shape[0] * src.shape[1]
+    if src.per_interval:
+        size = sim.block * -(-max(1, chunk or 1) // sim.block)
+        return [(i, min(src.n, i + size)) for i in range(0, src.n, size)], 1
+    if chunk is None:
+        from sensor.rates import block_keyframe_rows
+        bounds = block_keyframe_rows(src.t_s, sim.block, sim.interval_s)
+        biggest = max((j - i for i, j in bounds), default=1) * row_bytes
+        if biggest <= ALIGNED_MAX_BYTES:
+            return bounds, int(max(1, min(2, max_bytes // max(biggest, 1))))
+        chunk = 32
+    size = max(1, int(chunk))
+    bounds = [(i, min(src.n, i + size)) for i in range(0, src.n, size)]
+    if src.n < 2:
+        return bounds, 1
     spacing_s = (src.t_s[-1] - src.t_s[0]) / (src.n - 1)  # mean keyframe spacing
     per_block = sim.block * sim.interval_s / spacing_s
-    row_bytes = 4 * src.shape[0] * src.shape[1]
-    return int(max(1, min(math.ceil(2 * per_block / size), max_bytes // max(size * row_bytes, 1))))
+    return bounds, int(max(1, min(math.ceil(2 * per_block / size), max_bytes // max(size * row_bytes, 1))))
 
 
 @contextlib.contextmanager
@@ -395,11 +576,9 @@ def _prepare(args, say):
         raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
                          "(need at least two keyframes one interval apart)", path=args.input,
                          field="frames" if src.kind == "frames" else "t_s")
-    size = max(1, args.chunk)
-    if src.per_interval:
-        # one rate per interval: the simulator buffers a whole block before it runs anyway, so read
-        # whole blocks (aligned): the schedule then takes views of them and never copies rows
-        size = sim.block * -(-size // sim.block)
-    chunks = src.chunks(profile, size, read_ahead(src, sim, size))  # the reader thread starts now ...
+    if args.chunk is not None and args.chunk < 1:
+        raise InputError(f"--chunk must be a positive number of keyframes, got {args.chunk}", field="--chunk")
+    bounds, ahead = plan_reads(src, sim, args.chunk)
+    chunks = src.chunks(profile, bounds, ahead)  # the reader thread starts now ...
     sim.warm_up()  # ... while numba loads the kernels from its cache here
     return src, profile, sim, chunks

@@ -226,27 +226,40 @@ def test_npy_rows_are_map_views_released_after_use(tmp_path, dtype):
     assert rows.flags.writeable == (dtype is np.float64)  # float32: a view of the read-only map; else a copy
     src._release(0, 6)  # pages dropped from the process: the rows still read the file's values
     np.testing.assert_array_equal(rows, a[1:4].astype(np.float32))
-    got = [r for r, _ in RateSource(tmp_path / "r.npy").chunks(None, 4)]
+    got = [r for r, _, _ in RateSource(tmp_path / "r.npy").chunks(None, [(0, 4), (4, 6)])]
     np.testing.assert_array_equal(np.concatenate(got), a.astype(np.float32))
 
 
-def test_read_ahead_covers_two_blocks_of_keyframes_within_a_memory_cap():
+def test_read_plan_covers_two_blocks_of_keyframes_within_a_memory_cap():
     from types import SimpleNamespace as NS
 
-    from render2spike.commands.simulate import read_ahead
+    from render2spike.commands.simulate import plan_reads
     sim = NS(block=1000, interval_s=50e-6)  # 50 ms per block: 50 keyframes at 1 kHz
     kf = NS(per_interval=False, n=2001, t_s=np.arange(2001) * 1e-3, shape=(250, 400))
-    assert read_ahead(kf, sim, 32) == 4  # ceil(2 * 50 / 32)
-    assert read_ahead(kf, sim, 100) == 1
-    assert read_ahead(kf, sim, 32, max_bytes=3 * 32 * 4 * 250 * 400) == 3
-    assert read_ahead(NS(per_interval=True, n=5000), sim, 1000) == 1
+    bounds, ahead = plan_reads(kf, sim, 32)
+    assert bounds[:2] == [(0, 32), (32, 64)] and ahead == 4  # ceil(2 * 50 / 32)
+    assert plan_reads(kf, sim, 100)[1] == 1
+    assert plan_reads(kf, sim, 32, max_bytes=3 * 32 * 4 * 250 * 400)[1] == 3
+    bounds, ahead = plan_reads(kf, sim)  # default: one read per block, sharing the boundary keyframe
+    assert bounds[:3] == [(0, 51), (50, 101), (100, 151)] and bounds[-1][1] == 2001 and ahead == 2
+    big = NS(per_interval=False, n=2001, t_s=np.arange(2001) * 1e-4, shape=(250, 400))  # 500 rows per block
+    assert plan_reads(big, sim)[0][:2] == [(0, 32), (32, 64)]  # 200 MB per block: fixed chunks instead
+    bounds, ahead = plan_reads(NS(per_interval=True, n=5000, shape=(250, 400)), sim, 1)
+    assert bounds == [(0, 1000), (1000, 2000), (2000, 3000), (3000, 4000), (4000, 5000)] and ahead == 1
 
 
 @pytest.mark.parametrize("depth", [0, 1, 3])
 def test_read_ahead_depth_gives_the_same_chunks(tmp_path, depth):
     p = sensor.SensorProfile.load("vidar-default").window(0, 0, 8, 16)
     phi = _frames(tmp_path / "fr", n=10)
-    got = list(RateSource(tmp_path / "fr").chunks(p, 3, prefetch=depth))
-    assert [r.shape[0] for r, _ in got] == [3, 3, 3, 1]
-    np.testing.assert_array_equal(np.concatenate([r for r, _ in got]), sensor.photoelectron_rate(phi, p))
-    np.testing.assert_array_equal(np.concatenate([t for _, t in got]), np.arange(10) * 1e-3)
+    got = list(RateSource(tmp_path / "fr").chunks(p, [(0, 3), (3, 6), (6, 9), (9, 10)], prefetch=depth))
+    assert [r.shape[0] for r, _, _ in got] == [3, 3, 3, 1]
+    np.testing.assert_array_equal(np.concatenate([r for r, _, _ in got]), sensor.photoelectron_rate(phi, p))
+    np.testing.assert_array_equal(np.concatenate([t for _, t, _ in got]), np.arange(10) * 1e-3)
+    # overlapping ranges: the repeated rows come first, copied from the previous chunk
+    got = list(RateSource(tmp_path / "fr").chunks(p, [(0, 4), (2, 7), (6, 10)], prefetch=depth))
+    assert [(r.shape[0], ov) for r, _, ov in got] == [(4, 0), (5, 2), (4, 1)]
+    want = sensor.photoelectron_rate(phi, p)
+    for (r, t, _), (i, j) in zip(got, [(0, 4), (2, 7), (6, 10)]):
+        np.testing.assert_array_equal(r, want[i:j])
+        np.testing.assert_array_equal(t, np.arange(i, j) * 1e-3)

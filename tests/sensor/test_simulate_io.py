@@ -61,9 +61,9 @@ def test_frames_prefetch_gives_the_same_chunks(tmp_path):
     p = sensor.SensorProfile.load("vidar-default").window(0, 0, 4, 6)
     phi = np.random.default_rng(5).uniform(1e15, 2e16, (7, 4, 6)).astype(np.float32)
     sensor.write_frames(tmp_path / "fr", phi, np.arange(7) * 1e-3)
-    a = list(RateSource(tmp_path / "fr").chunks(p, 3, prefetch=True))
-    b = list(RateSource(tmp_path / "fr").chunks(p, 3, prefetch=False))
+    a = list(RateSource(tmp_path / "fr").chunks(p, [(0, 3), (3, 6), (6, 7)], prefetch=True))
+    b = list(RateSource(tmp_path / "fr").chunks(p, [(0, 3), (3, 6), (6, 7)], prefetch=False))
     assert [x[0].shape[0] for x in a] == [3, 3, 1]
-    for (ra, ta), (rb, tb) in zip(a, b):
+    for (ra, ta, _), (rb, tb, _) in zip(a, b):
         np.testing.assert_array_equal(ra, rb)
         np.testing.assert_array_equal(ta, tb)

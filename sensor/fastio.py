@@ -1,0 +1,111 @@
+"""Fused one-pass array work for streaming readers (numba when available, numpy otherwise).
+
+A reader that feeds the spike kernel must check every value it hands over (finite,
+>= 0) and, for irradiance frames, convert Phi to photoelectrons per interval. Done
+with numpy these are separate passes over each chunk (a strided copy out of the
+file's bytes, a float64 multiply, a min and a max), each a full trip through
+memory, and the reader runs beside a kernel that already keeps every core busy.
+Here each is one pass:
+
+* :func:`scale_checked` -- ``out = float32(float64(src) * scale)`` (the rounding of
+  :func:`sensor.units.photoelectron_rate`, bit for bit) and the number of source
+  values that are non-finite or negative;
+* :func:`count_bad` -- the number of non-finite or negative values.
+
+Both release the GIL (numba ``nogil``). Callers raise their own error (naming file,
+field and first bad index, e.g. :func:`sensor.rates.check_rates`) when the count is
+not zero; the slow path that finds the first bad value runs only then.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:  # pragma: no cover - exercised by the environment
+    from numba import njit
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover
+    HAVE_NUMBA = False
+
+if HAVE_NUMBA:
+    _FMAX = np.float32(np.finfo(np.float32).max)
+
+    @njit(nogil=True, cache=True)
+    def _scale_checked_2d(src, scale, out):  # pragma: no cover - compiled
+        H, W = src.shape
+        bad = 0
+        for r in range(H):
+            for c in range(W):
+                v = src[r, c]
+                # NaN fails both comparisons; +inf fails the second, negatives the first
+                bad += 0 if (v >= 0 and v <= _FMAX) else 1
+                out[r, c] = np.float32(np.float64(v) * scale)
+        return bad
+
+    @njit(nogil=True, cache=True)
+    def _count_bad_1d(a):  # pragma: no cover - compiled
+        bad = 0
+        for i in range(a.size):
+            v = a[i]
+            bad += 0 if (v >= 0 and v <= _FMAX) else 1
+        return bad
+
+
+def exr_scale_checked(table, heads, src, first: int, stride: int, y0: int, line: int, scale: float, out) -> int:
+    """:func:`scale_checked` of a channel ``src`` (float32 (H, W)) sliced out of an uncompressed scanline
+    EXR's bytes, after checking in the same compiled pass that the offset ``table`` (uint64 (H,)) puts the
+    scanlines back to back from byte ``first`` every ``stride`` bytes and that every scanline's ``heads``
+    (int32 (H, 2): y, data size) reads ``y0 + r`` and ``line``. Returns -1 (and writes nothing) when
+    the layout does not hold, else the number of non-finite or negative values."""
+    if HAVE_NUMBA:
+        return int(_exr_scale_checked(table, heads, src, first, stride, y0, line, float(scale), out))
+    H = table.shape[0]
+    if np.any(table != first + stride * np.arange(H, dtype=np.uint64)) or \
+            np.any(heads[:, 0] != y0 + np.arange(H)) or np.any(heads[:, 1] != line):
+        return -1
+    return scale_checked(src, scale, out)
+
+
+if HAVE_NUMBA:
+    @njit(nogil=True, cache=True)
+    def _exr_scale_checked(table, heads, src, first, stride, y0, line, scale, out):  # pragma: no cover - compiled
+        H = table.shape[0]
+        for r in range(H):
+            if np.int64(table[r]) != first + stride * r or heads[r, 0] != y0 + r or heads[r, 1] != line:
+                return -1
+        return _scale_checked_2d(src, scale, out)
+
+
+def scale_checked(src, scale: float, out) -> int:
+    """``out[...] = float32(float64(src) * scale)`` in one pass; returns how many ``src`` values are
+    non-finite or negative (``out`` is written regardless).
+
+    Parameters
+    ----------
+    src : float32 array (H, W)
+        Source values (any strides, e.g. a channel sliced out of a file's bytes).
+    scale : float
+        Factor applied in float64 (e.g. :func:`sensor.units.photoelectron_scale`).
+    out : float32 array (H, W)
+        Destination; may not overlap ``src`` unless it is ``src`` itself.
+    """
+    if src.shape != out.shape or out.dtype != np.float32:
+        raise ValueError(f"out must be float32 {src.shape}; got {out.dtype} {out.shape}")
+    if HAVE_NUMBA and src.ndim == 2 and src.dtype == np.float32:
+        return int(_scale_checked_2d(src, float(scale), out))
+    bad = count_bad(src)
+    np.multiply(src, float(scale), out=out, dtype=np.float64, casting="same_kind")
+    return bad
+
+
+def count_bad(arr) -> int:
+    """How many values of ``arr`` are non-finite or negative (one pass over a contiguous float32 array)."""
+    arr = np.asarray(arr)
+    if arr.size == 0:
+        return 0
+    if HAVE_NUMBA and arr.dtype == np.float32 and arr.flags.c_contiguous:
+        return int(_count_bad_1d(arr.reshape(-1)))
+    lo, hi = arr.min(), arr.max()  # NaN propagates through min/max: two passes when all is well
+    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
+        return 0
+    return int((~np.isfinite(arr) | (arr < 0)).sum())
