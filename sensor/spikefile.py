@@ -543,6 +543,7 @@ class SpikeWriter:
         self._blocks: list[np.ndarray] = []
         self._ctx = None
         self._fh = None
+        self._flip = None  # .dat: the re-ordered block, reused (only the writing thread touches it)
         self.n_intervals = 0
         self.n_spikes = 0
         self.shape = None
@@ -608,7 +609,16 @@ class SpikeWriter:
         self.n_intervals += bits.shape[0]
         self.n_spikes += count_bits(bits)
         if self.kind == "dat":
-            packed_to_dat(bits, *shape).tofile(self._fh)
+            H, W = shape
+            if W % 8 == 0:  # re-order rows (bottom-up) into a buffer reused block after block: a fresh 12 MB
+                n = bits.shape[0]  # array per block cost as much again in page faults and zeroing
+                if self._flip is None or self._flip.shape[0] < n or self._flip.shape[1:] != (H, W // 8):
+                    self._flip = np.empty((n, H, W // 8), np.uint8)
+                out = self._flip[:n]
+                np.copyto(out, bits.reshape(n, H, W // 8)[:, ::-1, :])
+                out.tofile(self._fh)
+            else:
+                packed_to_dat(bits, *shape).tofile(self._fh)
         else:
             self._blocks.append(bits)
 
