@@ -304,6 +304,7 @@ def cli_rows(profile_name: str, frames_durations, npy_durations, lux: float = 5.
         say(f"cli: wrote {max(frames_durations):g} s of frames in {time.perf_counter() - t:.0f} s (not timed)")
         tiny = _subset(full, d / "tiny", 2)
         # imports, profile, JIT cache load and 20 intervals: the fixed cost of one command
+        _warm(tiny)
         startup = min(_cli(tiny, d / "o.dat", profile_name)["wall_s"] for _ in range(repeats))
         for dur in frames_durations:
             n = int(round(dur * KEYFRAME_HZ)) + 1
@@ -336,6 +337,19 @@ def add_marginal(rows):
     return rows
 
 
+def _warm(src: Path) -> None:
+    """Read the input once, untimed, so the timed run reads it from the page cache: the comparison is of
+    the command's work against the kernel's (which reads nothing), not of this machine's disk. (On the
+    project's VM a memory monitor pages out page-cache pages unused for about a minute, so inputs
+    written early in the benchmark were otherwise read from disk in later rows, at random.)"""
+    files = sorted(p for p in src.iterdir() if p.is_file()) if src.is_dir() else [src]
+    buf = bytearray(8 << 20)
+    for f in files:
+        with open(f, "rb", buffering=0) as fh:
+            while fh.readinto(buf):
+                pass
+
+
 def _kernel_child(cfg: dict) -> dict:
     """:func:`run_one` in a grandchild started by a small wrapper process, like the command end to end: its
     peak RSS is then its own (a child forked straight from this process inherits this process's
@@ -362,7 +376,12 @@ def _cli_row(kind, src, d, profile_name, prof, lux, dur, kernel_input, startup, 
     load = os.getloadavg()[0]
     e2e_runs, ker_runs = [], []
     for _ in range(repeats):
+        # each run starts with no dirty pages waiting for write-back (writing the inputs leaves gigabytes of
+        # them, and both sides write 250 MB of spikes per camera-second): os.sync() before each, untimed
+        os.sync()
+        _warm(src)
         e2e_runs.append(_cli(src, d / "o.dat", profile_name))
+        os.sync()
         ker_runs.append(_kernel_child({"profile": profile_name, "sink": "disk", "threads": 0, "model": "elssim",
                                        "implementation": "fast", "lux": lux, "duration_s": dur,
                                        "input": kernel_input, "tmpdir": str(d), "trace": False}))
@@ -481,7 +500,8 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
                   "\"after start-up\" = kernel s / (end-to-end s - start-up); \"marginal\" = the kernel's extra "
                   "seconds over the command's from the previous duration of the same input to this one (fixed costs "
                   "cancel: the throughput on longer inputs). Each figure is the fastest of 3 runs, "
-                  "end to end and kernel alternating; peak RSS the largest of the 3; load = 1-minute load average "
+                  "end to end and kernel alternating, each after an os.sync() and the command's after one untimed read of "
+                  "its input (page cache warm); peak RSS the largest of the 3; load = 1-minute load average "
                   "when the row started.", "",
                   "| input | camera s | intervals | end-to-end s | kernel s | throughput vs kernel | after start-up "
                   "| marginal | CPU s end-to-end / kernel | peak RSS end-to-end MiB | peak RSS kernel MiB | load |",
