@@ -382,8 +382,36 @@ def write_report(res, meta, out_dir: Path) -> Path:
         for lux, ratio in res.get("wait_speedup", {}).items():
             L.append(f"\nWait old / new at {lux} lux: **{ratio:.2f}x**")
         L.append("")
+    L += goal_lines(res)
     write_text_atomic(out_dir / "render.md", "\n".join(L))
     return out_dir / "render.md"
+
+
+def goal_lines(res) -> list[str]:
+    """Issue 12's render goals, each marked met / not met with the figures of this report that decide it."""
+    say = lambda ok: "**met**" if ok else "**not met**"  # noqa: E731
+    out = []
+    new = [r for r in res.get("noise", []) if r.get("version") in (None, "new", "now")] or res.get("noise", [])
+    if new:
+        ok = all(0.15 <= x <= 0.25 for r in new for x in r["measured_ratios"])
+        out.append(f"- render/shot-noise ratio within 0.15-0.25 for a 0.2 target at 1, 5 and 50 lux: {say(ok)} ("
+                   + "; ".join(f"{r['lux']:g} lux: " + ", ".join(f"{x:.3f}" for x in r["measured_ratios"])
+                               for r in new) + ")")
+    if res.get("overhead"):
+        rows = res["overhead"]
+        worst = {}
+        for r in rows:
+            worst[r["resolution"]] = max(worst.get(r["resolution"], 0.0), r["overhead_ratio"])
+        out.append(f"- pipeline overhead <= 1.1x a bare `mi.render` at every size: {say(max(worst.values()) <= 1.1)} "
+                   "(largest per resolution: " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items()) + ")")
+    if res.get("wait_speedup"):
+        r50 = {str(k): v for k, v in res["wait_speedup"].items()}.get("50") or \
+            {str(k): v for k, v in res["wait_speedup"].items()}.get("50.0")
+        if r50 is not None:
+            out.append(f"- wait per camera-second at 50 lux, full resolution, cut by at least 2x: {say(r50 >= 2)} "
+                       f"({r50:.2f}x, extrapolated)")
+    out.append("- on a GPU, at least 20x the CPU's samples per second: **not measured** (no GPU was lent)")
+    return ["## Goals (issue 12)", ""] + out + [""] if out else []
 
 
 def main(argv=None):
