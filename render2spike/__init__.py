@@ -20,7 +20,28 @@ The Python API of this stage (imported lazily: ``import render2spike`` does not 
 * :class:`SceneRenderer` (render single frames at any time)
 """
 
-from sensor.fileio import package_version as _pv
+
+
+def _cli_blas_threads() -> None:
+    """In the ``render2spike`` command (not in a program that imports the package), numpy's OpenBLAS gets
+    one thread unless ``OPENBLAS_NUM_THREADS`` says otherwise: the commands' parallelism is their own
+    (numba's tiles, torch's threads, Dask's workers), and OpenBLAS's idle threads spun on the cores at
+    import (0.24 CPU s of a 0.4 s ``simulate`` start-up) and after every call. It must be set before
+    numpy is imported, which this package's own import does next."""
+    import os
+    import sys
+    if "numpy" in sys.modules:
+        return
+    argv0 = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    orig = list(getattr(sys, "orig_argv", []))
+    as_module = any(a == "-m" and b == "render2spike" for a, b in zip(orig, orig[1:]))
+    if argv0 == "render2spike" or as_module:
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+_cli_blas_threads()
+
+from sensor.fileio import package_version as _pv  # noqa: E402
 
 __version__ = _pv()
 
