@@ -10,9 +10,11 @@ Here each is one pass:
 * :func:`scale_checked` -- ``out = float32(float64(src) * scale)`` (the rounding of
   :func:`sensor.units.photoelectron_rate`, bit for bit) and the number of source
   values that are non-finite or negative;
+* :func:`exr_scale_checked` -- the same for a channel sliced out of an uncompressed
+  scanline EXR's bytes, after checking the file's offset table and scanline heads;
 * :func:`count_bad` -- the number of non-finite or negative values.
 
-Both release the GIL (numba ``nogil``). Callers raise their own error (naming file,
+All release the GIL (numba ``nogil``). Callers raise their own error (naming file,
 field and first bad index, e.g. :func:`sensor.rates.check_rates`) when the count is
 not zero; the slow path that finds the first bad value runs only then.
 """

@@ -431,9 +431,11 @@ class FrameSequence:
 
         Same checks and errors as :meth:`read_phi` (size, timestamp, Phi finite and >= 0), in one pass:
         an uncompressed scanline file (what :func:`write_frame` writes) is read into a byte buffer that
-        this sequence keeps and reuses (no fresh memory per frame), and Phi is scaled and checked
-        straight out of it (:func:`sensor.fastio.scale_checked`). Other EXR files go through
-        :meth:`read_phi`. The buffer makes this method for one thread at a time per sequence.
+        this sequence keeps and reuses (no fresh memory per frame); while a frame's header equals the
+        previous one's but for ``time_s``, its parsed layout is reused, and one compiled pass checks the
+        offset table and every scanline's ``y`` and size and scales and checks Phi straight out of the
+        buffer (:func:`sensor.fastio.exr_scale_checked`). Other EXR files go through :meth:`read_phi`.
+        The buffer makes this method for one thread at a time per sequence.
         """
         from .fastio import exr_scale_checked, scale_checked
         path = self.path(i)

@@ -374,10 +374,8 @@ class RateSource:
                 if ov:
                     out[:ov] = head
                 rate = out
-            else:
+            else:  # a memory map (called without ``head``: repeated rows are part of the view)
                 rate = self._npy_rows(i, j)
-                if ov:
-                    rate = np.concatenate([head, rate])
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(f"cannot read rows {i}..{j - 1} of rate_e (truncated or corrupt? {exc})",
                              path=self.path, field="rate_e") from exc
