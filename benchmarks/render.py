@@ -338,9 +338,11 @@ def write_report(res, meta, out_dir: Path) -> Path:
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", ""] + intro + [
               "Blocks of frames in the order pipeline, bare, bare, pipeline (`--rounds` times, 2 by default; the row's blocks are in 'per block'); the pipeline "
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
-              "background writer, journal, manifest). It includes the noise verification launches (the first "
-              "frame of every render, then every `VERIFY_EVERY`-th: 1 extra launch per block of up to "
-              "`VERIFY_EVERY` frames); 'without verification' takes one bare frame per verification launch out. 'per block': each pipeline block over its neighbouring bare block. "
+              "background writer, journal, manifest). It includes the noise verification launches actually made "
+              "(every `VERIFY_EVERY`-th frame and the first; the first frame's second render is the pilot's "
+              "t = 0 render at the frame spp where the pilot made one, no launch, since 2026-11-24 09:00; "
+              "before, 1 extra launch per block of up to `VERIFY_EVERY` frames); 'without verification' takes "
+              "one bare frame per verification launch made out. 'per block': each pipeline block over its neighbouring bare block. "
               "'median block': the median of those, which one block disturbed by another process moves less. "
               "'CPU': the same ratio as 'overhead' in process CPU time (all threads), which other processes on "
               "the machine also disturb less.", "",
