@@ -287,7 +287,11 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
 
     # ---- noise budget: pilot pairs at t = 0, convergence fitted (noise.pilot_budget) -----------
     K = keyframes_per_window(W, scene.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
-    with rnd.keep_renders():  # a pilot render at the frame spp is the first frame's verification render
+    # with a fixed spp, a pilot render at t = 0 and that spp is the first frame's second (verification)
+    # render: no launch added. Not with spp = auto: the snapping chose the spp on those very pairs, and the
+    # verification is there to check that choice on renders it did not see
+    keep = rnd.keep_renders() if rcfg["spp"] != "auto" else contextlib.nullcontext()
+    with keep:
         budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale, snap=rcfg["spp"] == "auto")
     if "spp" in state and "noise_budget" in state:  # resuming: the frames already made fix the spp
         budget = state["noise_budget"]

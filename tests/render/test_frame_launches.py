@@ -140,3 +140,42 @@ def test_write_json_atomic_writes_the_indented_text_with_the_usual_permissions(t
     os.umask(umask)
     assert (p.stat().st_mode & 0o777) == (0o666 & ~umask)
     assert [q.name for q in tmp_path.iterdir()] == ["x.json"]  # no temp file beside it
+
+
+@needs_mitsuba
+@pytest.mark.parametrize("spp", [16, "auto"])
+def test_render_job_reuses_the_pilot_render_for_its_first_verification_only_with_a_fixed_spp(
+        write_scene, tmp_path, monkeypatch, spp):
+    """A fixed spp: the first frame's verification takes the pilot's t = 0 render at that spp (no launch).
+    spp = auto: the snapping chose the spp on those pairs, so the verification launches its own render."""
+    from render2spike.render import renderer as rmod
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    import copy
+    from tests.render.conftest import BASE
+    render = copy.deepcopy(BASE["render"])
+    render.update(spp=spp, adaptive={"enabled": False})
+    sc = load_scene(write_scene({"render": render, "duration_s": 0.01}))
+    frames = {"n": 0}
+    orig = rmod.SceneRenderer.render_frame
+
+    def counting(self, *a, **k):
+        if frames["n"] == 0:
+            frames["launches0"] = self.n_launches
+            frames["rnd"] = self
+        frames["n"] += 1
+        return orig(self, *a, **k)
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", counting)
+    res = render_scene(sc, tmp_path / "out", progress=False, log=lambda *a: None)
+    rnd = frames["rnd"]
+    per_frame = len(rnd.launch_counts(res.spp))
+    extra = (rnd.n_launches - frames["launches0"]) // per_frame - res.n_frames
+    ratios = [f for f in json.loads((tmp_path / "out" / "frames.json").read_text())["frames"]]
+    assert res.n_frames == frames["n"] == len(ratios) == 3
+    if spp == 16:
+        assert extra == 0
+    else:
+        assert extra == 1 and per_frame == 1
+    # the first frame carries a measured ratio either way
+    from sensor.frames import read_frame
+    assert np.isfinite(read_frame(tmp_path / "out" / ratios[0]["file"]).header["render_noise_ratio"])
