@@ -152,8 +152,12 @@ def write_json_atomic(path, obj) -> Path:
 
     The text is ASCII (``json.dumps`` escapes everything else), so its bytes do not depend on the locale.
     """
-    text = json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
-    return write_bytes_atomic(path, text.encode("ascii"))
+    return write_bytes_atomic(path, json_bytes(obj))
+
+
+def json_bytes(obj) -> bytes:
+    """What :func:`write_json_atomic` writes for ``obj``: indented JSON and a newline, ASCII."""
+    return (json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n").encode("ascii")
 
 
 def _json_default(o):

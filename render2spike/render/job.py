@@ -49,8 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import provenance, write_json_atomic
-from sensor.frames import MANIFEST_NAME, read_frame, write_manifest
+from sensor.fileio import json_bytes, provenance, write_bytes_atomic, write_json_atomic
+from sensor.frames import MANIFEST_NAME, manifest_record, read_frame
 from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
@@ -196,6 +196,7 @@ class Journal:
 
 def _write_state(out: Path, state: dict) -> None:
     write_json_atomic(out / STATE_NAME, {k: v for k, v in state.items() if k != "frames"})
+
 
 
 def settings_of(scene: Scene, variant: str) -> dict:
@@ -448,11 +449,13 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                 "provenance": provenance(stage="render"),
             }
             manifest = json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+            # the two files' text, written once the writer is done (the manifest first, then the state)
+            manifest_text = json_bytes(manifest_record(prof.height, prof.width, frames, **manifest))
+            state_text = json_bytes({**{k: v for k, v in state.items() if k != "frames"}, "complete": True})
     finally:
         if bar:
             bar.close()
-    write_manifest(out, prof.height, prof.width, frames, **manifest)
+    write_bytes_atomic(out / MANIFEST_NAME, manifest_text)
+    write_bytes_atomic(out / STATE_NAME, state_text)
     state["complete"] = True
-    _write_state(out, state)
-    return RenderResult(out, len(frames), n_rendered, spp, scene_hash, seconds, False,
-                        _read_json(out / MANIFEST_NAME) or {})
+    return RenderResult(out, len(frames), n_rendered, spp, scene_hash, seconds, False, json.loads(manifest_text))
