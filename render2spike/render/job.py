@@ -338,16 +338,6 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
     ratios = []
     made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name, "variant": variant})
 
-    pending = []  # the last rendered frame's write, not yet handed to the writer
-
-    def hand_over() -> None:
-        """Queue the pending frame write. Called while the next frame's kernel runs (the render thread waits
-        for it without the GIL, so the writer thread's Python work does not slow the next launch's tracing,
-        which a GIL-hungry thread can make several times slower), at the end, and on an interruption."""
-        while pending:
-            path, phi, lux, t_s, attrs, record = pending.pop(0)
-            writer.submit(path, phi, lux, time_s=t_s, attrs=attrs, record=record)
-
     def get_frame(tick: int):
         nonlocal n_rendered
         key = str(tick)
@@ -358,8 +348,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             advance(tick)
             return fr.phi.astype(np.float64)
         # the achieved ratio is measured on the first and every VERIFY_EVERY-th (128th) frame (one extra render each)
-        f = rnd.render_frame(t_s, int(rcfg["seed"]), spp, variance=n_rendered % VERIFY_EVERY == 0,
-                             while_running=hand_over)
+        f = rnd.render_frame(t_s, int(rcfg["seed"]), spp, variance=n_rendered % VERIFY_EVERY == 0)
         if f["phi_var"] is None:
             ratio = float("nan")  # what render_noise_ratio gives without a variance
         else:
@@ -375,10 +364,9 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                  "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
         state["frames"][key] = {"file": name, "time_s": t_s, "render_noise_ratio": float(ratio)}
-        # written in the background while the next frame renders (handed to the writer once that frame's
-        # kernel runs, see hand_over); its journal line follows the file
-        pending.append((out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), t_s, attrs,
-                        {"tick": int(tick), **state["frames"][key]}))
+        # written in the background while the next frame renders; its journal line follows the file
+        writer.submit(out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=t_s,
+                      attrs=attrs, record={"tick": int(tick), **state["frames"][key]})
         n_rendered += 1
         advance(tick)
         return f["phi"]
@@ -398,14 +386,8 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         # the writer finishes the queued frames and closes (fsyncs) the journal, in its thread, while the
         # manifest is prepared here; both are done (the thread joined) before the manifest is written
         with journal_file, FrameWriter(on_written=journal, on_stop=journal_file.close) as writer:
-            try:
-                ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
-                                       adaptive=bool(acfg["enabled"]))
-            except BaseException:  # every frame whose render finished is still written and journalled
-                with contextlib.suppress(Exception):
-                    hand_over()
-                raise
-            hand_over()
+            ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
+                                   adaptive=bool(acfg["enabled"]))
             writer.stop()
             if bar:
                 bar.close()

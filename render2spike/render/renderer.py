@@ -227,7 +227,7 @@ class SceneRenderer:
             return None
         return hit
 
-    def render_frame(self, t_s: float, base_seed: int, spp: int, variance: bool = True, while_running=None) -> dict:
+    def render_frame(self, t_s: float, base_seed: int, spp: int, variance: bool = True) -> dict:
         """Physical frame at ``t_s`` [s]: ``phi`` [e-/(s m^2)], ``lux`` [lux], ``phi_var`` (MC variance of phi).
 
         The frame takes exactly ``spp`` samples per pixel, in one launch whenever the sampler
@@ -238,9 +238,7 @@ class SceneRenderer:
         either is waited for (the second is traced while the first one's kernel runs). When a
         render of the same time and spp in one launch was kept from the pilot
         (:meth:`keep_renders`), it is the second render (``variance_seeds`` then names its seed)
-        and no launch is added. ``while_running()``, if given, is called once the launches are
-        made, before they are waited for: Python work there does not contend with the tracing of
-        the launches for the GIL (the render job hands the previous frame to its writer thread then).
+        and no launch is added.
         """
         counts = self.launch_counts(spp)
         seeds = frame_seeds(base_seed, t_s, 2 * len(counts))
@@ -248,8 +246,6 @@ class SceneRenderer:
         launched_a = self._launch_exact(t_s, sa, spp)
         reused = self._reused_render(t_s, spp, sa) if variance else None
         launched_b = self._launch_exact(t_s, sb, spp) if variance and reused is None else None
-        if while_running is not None:
-            while_running()
         raw_p, raw_e = self._finish_exact(launched_a, spp)
         phi, lux = to_physical(raw_p, raw_e, self.k, self.f_number, self.transmission, self.cos4)
         out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": list(sa), "spp": int(spp), "phi_var": None}
