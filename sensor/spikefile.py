@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SpikeFileError, UnknownMethodError
-from .fileio import atomic_path, provenance
+from .fileio import DirectStream, atomic_path, provenance
 from .units import INTERVAL_S
 
 SPIKES_FORMAT = "render2spike-spikes"
@@ -543,14 +543,13 @@ class SpikeWriter:
         self._blocks: list[np.ndarray] = []
         self._ctx = None
         self._fh = None
-        self._flip = None  # .dat: the re-ordered block, reused (only the writing thread touches it)
         self.n_intervals = 0
         self.n_spikes = 0
         self.shape = None
         if self.kind == "dat":
             self._ctx = atomic_path(self.path)
             self._tmp = self._ctx.__enter__()
-            self._fh = open(self._tmp, "wb")
+            self._fh = DirectStream(self._tmp)  # around the page cache where it can (see DirectStream)
         self._queue = self._thread = self._error = None
         if background:
             import queue
@@ -610,15 +609,14 @@ class SpikeWriter:
         self.n_spikes += count_bits(bits)
         if self.kind == "dat":
             H, W = shape
-            if W % 8 == 0:  # re-order rows (bottom-up) into a buffer reused block after block: a fresh 12 MB
-                n = bits.shape[0]  # array per block cost as much again in page faults and zeroing
-                if self._flip is None or self._flip.shape[0] < n or self._flip.shape[1:] != (H, W // 8):
-                    self._flip = np.empty((n, H, W // 8), np.uint8)
-                out = self._flip[:n]
-                np.copyto(out, bits.reshape(n, H, W // 8)[:, ::-1, :])
-                out.tofile(self._fh)
+            if W % 8 == 0:  # rows re-ordered (bottom-up) straight into the stream's staging buffer (memory
+                n = bits.shape[0]  # reused block after block: no fresh pages to fault in and clear)
+                dst = np.frombuffer(self._fh.reserve(bits.size), np.uint8).reshape(n, H, W // 8)
+                np.copyto(dst, bits.reshape(n, H, W // 8)[:, ::-1, :])
+                del dst
+                self._fh.commit(bits.size)
             else:
-                packed_to_dat(bits, *shape).tofile(self._fh)
+                self._fh.write(packed_to_dat(bits, *shape))
         else:
             self._blocks.append(bits)
 

@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import sys
 import time
 import zipfile
 import zlib
 from pathlib import Path
 
 import numpy as np
+
+from sensor.buffers import RecyclingPool
 
 HELP = "simulate a spike stream from irradiance frames or a photoelectron-rate array"
 DESCRIPTION = """\
@@ -169,41 +170,12 @@ def _stored_member_map(path: Path, name: str):
     return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=tuple(shape)), (info.CRC, crc)
 
 
-class _ChunkPool:
-    """Float32 chunk arrays recycled once nobody else holds them.
-
-    A fresh 20 MB array costs thousands of page faults and the zeroing of its memory (numpy asks for
-    transparent huge pages, which may also compact memory), on a machine whose cores the kernel
-    keeps busy; chunks of one input share a shape, so the reader takes back an array the simulator
-    has dropped (no reference left but the pool's: views of it count, through their ``base``).
-    """
+class _ChunkPool(RecyclingPool):
+    """Float32 chunk arrays recycled once nobody else holds them (:class:`sensor.buffers.RecyclingPool`):
+    chunks of one input share a shape, so the reader takes back an array the simulator has dropped."""
 
     def __init__(self, keep: int = 6):
-        self.keep = keep
-        self.arrays: list[np.ndarray] = []
-        # what sys.getrefcount reports, in this very loop, for an array nobody else holds (the pool's list,
-        # the loop variable, the call's argument: 3 on CPython 3.11-3.13): measured, not assumed, so an
-        # interpreter that counts differently cannot make the pool hand out an array still in use. Pooling
-        # is off where reference counts are deferred (free-threaded builds).
-        self._free = self._free_count() if getattr(sys, "_is_gil_enabled", lambda: True)() else None
-
-    def _free_count(self) -> int:
-        probe = [np.empty(1, np.float32)]
-        count = None
-        for a in probe:
-            count = sys.getrefcount(a)
-        return count
-
-    def take(self, shape) -> np.ndarray:
-        shape = tuple(shape)
-        for a in self.arrays if self._free is not None else ():
-            if a.shape == shape and sys.getrefcount(a) == self._free:
-                return a
-        a = np.empty(shape, np.float32)
-        if len(self.arrays) >= self.keep:
-            self.arrays.pop(0)
-        self.arrays.append(a)
-        return a
+        super().__init__(np.float32, keep)
 
 
 class RateSource:
@@ -359,8 +331,7 @@ class RateSource:
             out = self._pool.take((ov + j - i,) + self.shape)
             if ov:
                 out[:ov] = head
-            for q in range(i, j):
-                self.frames.read_scaled(q, scale, out[ov + q - i])
+            self.frames.read_scaled_many(i, j, scale, out[ov:])
             return out
         try:
             if self._member is not None:
