@@ -190,7 +190,10 @@ class DirectStream:
 
     def write(self, data) -> None:
         """Append ``data`` (any C-contiguous buffer)."""
-        src = memoryview(data).cast("B")
+        src = memoryview(data)
+        if not src.nbytes:
+            return
+        src = src.cast("B")
         self.reserve(len(src))[:] = src
         self.commit(len(src))
 

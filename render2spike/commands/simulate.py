@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import sys
 import time
 import zipfile
 import zlib
@@ -521,8 +522,41 @@ def _start_up():
             gc.enable()
 
 
+def _lean_numba() -> None:
+    """In the ``render2spike`` command only: numba's optional extras stay unloaded.
+
+    When numba first loads a kernel it imports its NumPy support, which looks for SciPy's BLAS (for
+    ``np.dot`` and ``np.linalg`` in compiled code) and for cffi; importing ``scipy.linalg`` and cffi for
+    that took 0.10 of the command's 0.4-0.5 s start-up, and the spike kernels use neither. Here that
+    support is imported first with both hidden, so numba records them as absent for this process.
+    A program that imports the package (and may compile its own linear algebra) is left alone, as is a
+    process that has SciPy already."""
+    import importlib.abc
+
+    import render2spike
+    if not render2spike.cli_process() or "scipy" in sys.modules or "numba.np.arraymath" in sys.modules:
+        return
+
+    class _Hide(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path, target=None):
+            if name.split(".")[0] in ("scipy", "cffi"):
+                raise ImportError(f"{name} is not loaded by render2spike simulate")
+            return None
+
+    hide = _Hide()
+    sys.meta_path.insert(0, hide)
+    try:
+        import numba.core.typing.cffi_utils  # noqa: F401
+        import numba.np.arraymath  # noqa: F401
+    except ImportError:  # no numba: the reference simulator runs
+        pass
+    finally:
+        sys.meta_path.remove(hide)
+
+
 def _prepare(args, say):
     """Open INPUT and the profile, make the simulator, start reading, load the kernels."""
+    _lean_numba()
     from sensor import SensorProfile, SpikeSimulator
     from sensor.errors import InputError
 

@@ -175,7 +175,7 @@ def test_direct_stream_writes_the_bytes_given_whatever_the_block_sizes(tmp_path,
     from sensor.fileio import DirectStream
     monkeypatch.setenv("RENDER2SPIKE_DIRECT_IO", direct)
     rng = np.random.default_rng(9)
-    sizes = [1, 4095, 4096, 4097, 3 << 20, 12345, 0, 2 << 20, 7]  # the staging buffer grows past 1 MiB
+    sizes = [1, 4095, 4096, 4097, 3 << 20, 12345, 0, 2 << 20, 7, 0]  # the staging buffer grows past 1 MiB
     blocks = [rng.integers(0, 256, n, dtype=np.uint8) for n in sizes]
     f = DirectStream(tmp_path / "x.bin")
     if direct == "0":
