@@ -448,7 +448,7 @@ def run(args) -> int:
     total = src.n_intervals(profile.interval_s)
     with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,
                      seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
-                     extra=extra, background=True) as writer, \
+                     extra=extra, background=True, expected_intervals=total) as writer, \
             tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
         for rate, t, overlap in chunks:
             # the reader checked the rates (naming file and row) and hands each fresh chunk over; its first

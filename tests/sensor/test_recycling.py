@@ -229,3 +229,35 @@ def test_dat_written_directly_equals_the_buffered_file(tmp_path, monkeypatch, wi
         np.testing.assert_array_equal(sensor.read_spikes(paths["1"], height=24, width=width), bits)
     else:
         assert paths["1"].read_bytes() == paths["0"].read_bytes()
+
+
+# ------------------------------------------------------------------------------------------ streamed .npz
+@pytest.mark.parametrize("expected", [70, 50, 90, None])  # right, too few, too many, unknown
+def test_a_streamed_container_holds_what_the_in_memory_one_holds(tmp_path, expected):
+    bits = np.random.default_rng(4).random((70, 24, 40)) < 0.1
+    kw = dict(interval_s=50e-6, model="elssim", profile_id="x", seed=3, source="s", extra={"k": 1})
+    with SpikeWriter(tmp_path / "s.npz", background=True, expected_intervals=expected, **kw) as w:
+        for k in range(0, 70, 30):
+            w.write(bits[k:k + 30])
+        assert (w._zip is not None) == (expected is not None) and (not w._blocks or expected is None)
+    sensor.spikefile.write_spikes(tmp_path / "ref.npz", bits, **kw)
+    got, meta = sensor.spikefile.read_spikes_with_meta(tmp_path / "s.npz")
+    want, ref = sensor.spikefile.read_spikes_with_meta(tmp_path / "ref.npz")
+    np.testing.assert_array_equal(got, want)
+    for m in (meta, ref):
+        m.pop("provenance")
+    assert meta == ref and meta["n_intervals"] == 70
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ref.npz", "s.npz"]  # no temp file left
+
+
+def test_a_streamed_container_of_no_intervals_and_one_aborted(tmp_path):
+    kw = dict(interval_s=50e-6, model="elssim", profile_id="x", seed=3)
+    with SpikeWriter(tmp_path / "e.npz", expected_intervals=10, **kw):
+        pass
+    with np.load(tmp_path / "e.npz") as z:  # as the in-memory writer writes it (no frame: no frame size)
+        assert z["packed"].shape == (0, 0)
+    with pytest.raises(RuntimeError):
+        with SpikeWriter(tmp_path / "a.npz", expected_intervals=10, background=True, **kw) as w:
+            w.write(np.ones((4, 8, 8), bool))
+            raise RuntimeError("stop")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e.npz"]
