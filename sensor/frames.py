@@ -383,6 +383,13 @@ def _read_files(paths, q: int, n: int, buf) -> int:
     return n
 
 
+def _groupable(hdr) -> bool:
+    """Whether frames of the layout ``hdr`` (:func:`_exr_header`) can be read in groups: float32 Phi and a
+    double ``time_s``, as :func:`write_frame` writes them."""
+    tattr = hdr[7]
+    return hdr[6] == np.float32 and tattr is not None and tattr[0] == b"double" and tattr[2] == 8
+
+
 def read_phi(path, out=None) -> tuple[float, np.ndarray]:
     """Only the ``Phi`` channel of a frame file: (time_s [s], Phi float32 (H, W) [e-/(s m^2)]).
 
@@ -541,8 +548,8 @@ class FrameSequence:
         q = i
         while q < j:
             hit = self._hdr
-            if hit is None:  # no layout known yet: this frame the general way (it learns the layout)
-                self.read_scaled(q, scale, out[q - i])
+            if hit is None or not _groupable(hit[5]):  # no layout known yet (this frame teaches it), or not
+                self.read_scaled(q, scale, out[q - i])  # one that write_frame writes: the general way
                 q += 1
                 continue
             g = min(self.GROUP_FRAMES, j - q)
@@ -571,8 +578,6 @@ class FrameSequence:
         if n == 0:
             return 0
         pos, H, W, y0, line, offset, dtype, tattr = hdr
-        if dtype != np.float32 or tattr is None or tattr[0] != b"double" or tattr[2] != 8:
-            return 0  # only what write_frame writes goes this way
         buf = buf[:n]
         stride, first = 8 + line, pos + 8 * H
         rows = buf[:, first:first + stride * H].reshape(n, H, stride)

@@ -680,8 +680,13 @@ class SpikeWriter:
             self.abort()
             raise
         if self.kind == "dat":
-            self._fh.close()
-            self._ctx.__exit__(None, None, None)
+            try:
+                self._fh.close()  # the last partial page is written here: a full disk may say so now
+            except BaseException:
+                self.abort()
+                raise
+            ctx, self._ctx = self._ctx, None
+            ctx.__exit__(None, None, None)
             return self.path
         if self._zip is not None:
             try:
@@ -689,7 +694,8 @@ class SpikeWriter:
             except BaseException:
                 self.abort()
                 raise
-            self._ctx.__exit__(None, None, None)
+            ctx, self._ctx = self._ctx, None
+            ctx.__exit__(None, None, None)
             return self.path
         H, W = self.shape if self.shape is not None else (0, 0)
         packed = np.concatenate(self._blocks) if self._blocks else np.zeros((0, (H * W + 7) // 8), np.uint8)
@@ -723,7 +729,8 @@ class SpikeWriter:
         self._stop()
         self._error = None
         if self.kind == "dat" and self._fh is not None:
-            self._fh.close()
+            with contextlib.suppress(OSError):  # the file is removed next
+                self._fh.close()
             self._fh = None
         if self._zip is not None:  # the file is removed next: close what is open, however far it got
             with contextlib.suppress(Exception):

@@ -261,3 +261,31 @@ def test_a_streamed_container_of_no_intervals_and_one_aborted(tmp_path):
             w.write(np.ones((4, 8, 8), bool))
             raise RuntimeError("stop")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["e.npz"]
+
+
+def test_frames_of_a_layout_not_grouped_are_read_one_at_a_time_once(folder, monkeypatch):
+    """A folder whose layout the groups do not take (e.g. half-float Phi; here by decree) is read frame by frame,
+    each file once."""
+    p, scale, phi, t, fr = folder
+    seq = sensor.read_frames(fr)
+    import sensor.frames as F
+    monkeypatch.setattr(F, "_groupable", lambda hdr: False)
+    opened = []
+    monkeypatch.setattr(F, "_read_files", lambda *a: opened.append(a) or 0)
+    got = seq.read_scaled_many(0, 11, scale, np.empty((11, 7, 9), np.float32))
+    np.testing.assert_array_equal(got, sensor.photoelectron_rate(phi, p))
+    assert not opened
+
+
+def test_a_dat_whose_last_write_fails_leaves_nothing_behind(tmp_path, monkeypatch):
+    import errno
+    from sensor import fileio
+    w = SpikeWriter(tmp_path / "s.dat", interval_s=50e-6, model="elssim", profile_id="x", seed=0)
+    w.write(np.ones((3, 8, 8), bool))  # 24 bytes: staged, written at close
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(fileio.os, "write", full)
+    with pytest.raises((OSError, sensor.errors.Render2SpikeError)):
+        w.close()
+    assert list(tmp_path.iterdir()) == []
