@@ -679,18 +679,9 @@ class SpikeWriter:
         except BaseException:
             self.abort()
             raise
-        if self.kind == "dat":
-            try:
-                self._fh.close()  # the last partial page is written here: a full disk may say so now
-            except BaseException:
-                self.abort()
-                raise
-            ctx, self._ctx = self._ctx, None
-            ctx.__exit__(None, None, None)
-            return self.path
-        if self._zip is not None:
-            try:
-                self._finish_zip()
+        if self.kind == "dat" or self._zip is not None:  # streamed into a temp file: finish it, then rename
+            try:  # (the last partial page, or the container's end, is written here: a full disk may say so now)
+                self._fh.close() if self.kind == "dat" else self._finish_zip()
             except BaseException:
                 self.abort()
                 raise
