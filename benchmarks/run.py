@@ -16,7 +16,8 @@ time are its own):
   (:mod:`benchmarks.scene` gives the lux -> e-/interval chain);
 * output: the full spike stream, bit-packed (``SpikeSimulator.iter_feed_packed``),
   written to a file on disk by a writer thread (``--sink disk``, default; at most two
-  blocks queued, the final flush is timed) or dropped (``--sink none``);
+  blocks queued, the final flush is timed; through :class:`sensor.fileio.DirectStream`, as
+  ``render2spike simulate`` writes) or dropped (``--sink none``);
 * timed: ``feed`` + simulation + the write; **not** timed: generating the keyframes
   (the renderer's job) and the first-call JIT compilation / cache load, which is
   reported separately (``jit_s``);
@@ -511,7 +512,8 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
                   "`SpikeSimulator.iter_feed_packed` on in-memory input, one feed per simulator block (its "
                   "keyframes exactly, so none is ever joined, made just before its feed: hot in the caches, "
                   "the kernel at its fastest), output written to disk by a thread whose writes are waited for "
-                  "inside the timed sections, JIT and input making excluded). CPU s = user + system seconds of every thread: the whole command's, and the kernel "
+                  "inside the timed sections, through the command's own writer stream (sensor.fileio.DirectStream: "
+                  "around the page cache where the file system allows), JIT and input making excluded). CPU s = user + system seconds of every thread: the whole command's, and the kernel "
                   "process's inside its timed sections. "
                   f"Start-up = the command on a 2-frame folder ({cli_rows_[0]['startup_s']:.2f} s, fastest of 3); "
                   "\"after start-up\" = kernel s / (end-to-end s - start-up); \"marginal\" = the kernel's extra "
@@ -655,7 +657,7 @@ def main(argv=None):
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": _machine(), "load_before": load_before,
             "load_after": tuple(round(x, 2) for x in os.getloadavg()), "profile": prof.name,
             "height": prof.height, "width": prof.width, "threshold_e": prof.threshold_e,
-            "sink": "a file on disk" if a.sink == "disk" else "nowhere (dropped)", "duration_s": a.duration,
+            "sink": "a file on disk (sensor.fileio.DirectStream)" if a.sink == "disk" else "nowhere (dropped)", "duration_s": a.duration,
             "ref_intervals": a.ref_intervals}
     path = write_tables(rows, mem_rows, meta, Path(a.out), cli)
     print(f"wrote {path} and {path.with_suffix('.csv')}")
