@@ -32,11 +32,19 @@ def _cli_blas_threads() -> None:
     import sys
     if "numpy" in sys.modules:
         return
+    if cli_process():
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def cli_process() -> bool:
+    """Whether this process is the ``render2spike`` command (the console script or ``python -m
+    render2spike``), not a program that imports the package: process-wide settings (threads, what
+    numba loads) are made only for the command."""
+    import os
+    import sys
     argv0 = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
     orig = list(getattr(sys, "orig_argv", []))
-    as_module = any(a == "-m" and b == "render2spike" for a, b in zip(orig, orig[1:]))
-    if argv0 == "render2spike" or as_module:
-        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return argv0 == "render2spike" or any(a == "-m" and b == "render2spike" for a, b in zip(orig, orig[1:]))
 
 
 _cli_blas_threads()

@@ -759,24 +759,41 @@ class _FastModel(SpikeModel):
         bits = self.run_segments(Segments.per_interval(lam, state["m"]), state, rng)
         return unpack_frames(bits, lam.shape[1:])
 
-    def run_segments(self, seg: Segments, state: dict, rng) -> np.ndarray:
-        """Packed spikes uint8 (m1 - m0, ceil(H*W/8)) for the block ``seg``; updates ``state``."""
+    def run_segments(self, seg: Segments, state: dict, rng, out=None) -> np.ndarray:
+        """Packed spikes uint8 (m1 - m0, ceil(H*W/8)) for the block ``seg``; updates ``state``.
+
+        ``out``: an array of that shape and dtype to write them into, whatever it holds (each tile's
+        thread clears its own bytes first, in memory that is already mapped); default a new one.
+        """
         if seg.m0 != state["m"]:
             raise ValueError(f"block starts at interval {seg.m0} but the state is at {state['m']}")
         if seg.rates.shape[1] != self.n_pixels:
             raise ValueError(f"segments have {seg.rates.shape[1]} pixels, the profile {self.n_pixels}")
-        out = np.zeros((seg.m1 - seg.m0, self.n_bytes), np.uint8)
+        shape = (seg.m1 - seg.m0, self.n_bytes)
+        if out is None:
+            out, clear = np.zeros(shape, np.uint8), False
+        elif out.shape != shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous uint8 array of shape {shape}; got {out.dtype} {out.shape}")
+        else:
+            clear = True
         rngs = rng.spawn(len(self.tiles)) if self.uses_rng else [None] * len(self.tiles)
         jobs = [(t, g) for t, g in zip(self.tiles, rngs)]
         if len(jobs) == 1 or n_threads() == 1:
             for (p0, p1), g in jobs:
-                self._tile(seg, state, g, p0, p1, out)
+                self._tile_into(seg, state, g, p0, p1, out, clear)
         else:
-            futs = [_pool().submit(self._tile, seg, state, g, p0, p1, out) for (p0, p1), g in jobs]
+            futs = [_pool().submit(self._tile_into, seg, state, g, p0, p1, out, clear) for (p0, p1), g in jobs]
             for f in futs:
                 f.result()
         state["m"] = seg.m1
         return out
+
+    def _tile_into(self, seg, state, rng, p0, p1, out, clear: bool):
+        """One tile's spikes OR-ed into ``out``, after clearing the tile's bytes when asked (tiles start on
+        whole bytes, TILE_PIXELS being a multiple of 8, so no two threads share a byte)."""
+        if clear:
+            out[:, p0 >> 3:(p1 + 7) >> 3] = 0
+        self._tile(seg, state, rng, p0, p1, out)
 
     def _tile(self, seg, state, rng, p0, p1, out):  # pragma: no cover - abstract
         raise NotImplementedError

@@ -11,7 +11,8 @@ Here each is one pass:
   :func:`sensor.units.photoelectron_rate`, bit for bit) and the number of source
   values that are non-finite or negative;
 * :func:`exr_scale_checked` -- the same for a channel sliced out of an uncompressed
-  scanline EXR's bytes, after checking the file's offset table and scanline heads;
+  scanline EXR's bytes, after checking the file's offset table and scanline heads
+  (:func:`exr_group_scale_checked`: a group of frames in one call);
 * :func:`count_bad` -- the number of non-finite or negative values.
 
 All release the GIL (numba ``nogil``). Callers raise their own error (naming file,
@@ -76,6 +77,37 @@ if HAVE_NUMBA:
             if np.int64(table[r]) != first + stride * r or heads[r, 0] != y0 + r or heads[r, 1] != line:
                 return -1
         return _scale_checked_2d(src, scale, out)
+
+
+def exr_group_scale_checked(table, heads, src, first: int, stride: int, y0: int, line: int, scale: float, out,
+                            bad) -> int:
+    """:func:`exr_scale_checked` over a group of n frames of one layout in one compiled call: ``table``
+    uint64 (n, H), ``heads`` int32 (n, H, 2), ``src`` float32 (n, H, W), ``out`` float32 (n, H, W) and
+    ``bad`` int64 (n,) (each frame's count of non-finite or negative values). Frames are done in order;
+    returns the index of the first whose layout does not hold (nothing of it written), or n."""
+    n = table.shape[0]
+    if src.shape != out.shape or out.dtype != np.float32 or bad.shape != (n,):
+        raise ValueError(f"out must be float32 {src.shape} and bad ({n},); got {out.dtype} {out.shape}, {bad.shape}")
+    if HAVE_NUMBA:
+        return int(_exr_group_scale_checked(table, heads, src, first, stride, y0, line, float(scale), out, bad))
+    for k in range(n):
+        b = exr_scale_checked(table[k], heads[k], src[k], first, stride, y0, line, scale, out[k])
+        if b < 0:
+            return k
+        bad[k] = b
+    return n
+
+
+if HAVE_NUMBA:
+    @njit(nogil=True, cache=True)
+    def _exr_group_scale_checked(table, heads, src, first, stride, y0, line, scale, out,
+                                 bad):  # pragma: no cover - compiled
+        for k in range(table.shape[0]):
+            b = _exr_scale_checked(table[k], heads[k], src[k], first, stride, y0, line, scale, out[k])
+            if b < 0:
+                return k
+            bad[k] = b
+        return table.shape[0]
 
 
 def scale_checked(src, scale: float, out) -> int:

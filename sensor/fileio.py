@@ -127,6 +127,119 @@ def write_bytes_atomic(path, data) -> Path:
     return path
 
 
+class DirectStream:
+    """An append-only file for large blocks (spike streams) written around the page cache where the file
+    system allows it (``O_DIRECT``), else as usual.
+
+    A buffered ``write`` copies every byte into page-cache pages the kernel must first find, clear and
+    later write back: on the project's 2-core VM that costs about 2 CPU seconds per GB (1 GB of spikes is
+    4 camera-seconds), as much as the spike kernel's own work. Written directly from an aligned buffer,
+    the same GB costs about 0.1 CPU seconds (``dd`` on that VM: 1.97 s against 0.09 s of system time).
+
+    Blocks are staged in a page-aligned buffer that this stream keeps (:meth:`reserve` hands out its free
+    part to fill, :meth:`commit` writes out every whole ``align`` bytes and keeps the rest for the next
+    block; :meth:`write` does both with a copy); :meth:`close` writes the last partial piece the usual way.
+    Without ``O_DIRECT`` (a file system that refuses it, e.g. tmpfs, an unaligned write refused, other
+    platforms, or ``RENDER2SPIKE_DIRECT_IO=0``) the same calls write through the page cache. The bytes
+    in the file are the same either way.
+    """
+
+    def __init__(self, path, align: int = 4096):
+        self.path = Path(path)
+        self.align = int(align)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0)
+        want = getattr(os, "O_DIRECT", 0) if os.environ.get("RENDER2SPIKE_DIRECT_IO", "1") != "0" else 0
+        self.fd = None
+        if want:
+            try:
+                self.fd = os.open(self.path, flags | want, 0o666)
+            except OSError as exc:  # EINVAL: this file system has no direct I/O
+                if exc.errno != errno.EINVAL:
+                    raise
+        self.direct = self.fd is not None
+        if self.fd is None:
+            self.fd = os.open(self.path, flags, 0o666)
+        self._buf = None  # mmap: page-aligned, reused
+        self._view = None
+        self._fill = 0  # bytes staged, not yet written
+
+    def reserve(self, nbytes: int) -> memoryview:
+        """A writable view of ``nbytes`` free staged bytes (fill it, then :meth:`commit` it)."""
+        need = self._fill + int(nbytes)
+        if self._buf is None or len(self._buf) < need:
+            import mmap
+            cap = -(-max(need, 1 << 20) // mmap.PAGESIZE) * mmap.PAGESIZE
+            buf = mmap.mmap(-1, cap)  # anonymous: page-aligned, what O_DIRECT asks of the memory
+            view = memoryview(buf)
+            if self._fill:
+                view[:self._fill] = self._view[:self._fill]
+            self._release()
+            self._buf, self._view = buf, view
+        return self._view[self._fill:need]
+
+    def commit(self, nbytes: int) -> None:
+        """Append the ``nbytes`` just filled in the view :meth:`reserve` gave."""
+        self._fill += int(nbytes)
+        whole = self._fill - self._fill % self.align if self.direct else self._fill
+        if whole:
+            self._write_all(self._view[:whole])
+            rest = self._fill - whole
+            if rest:  # less than one page: moved to the front for the next block
+                self._view[:rest] = self._view[whole:self._fill]
+            self._fill = rest
+
+    def write(self, data) -> None:
+        """Append ``data`` (any C-contiguous buffer)."""
+        src = memoryview(data)
+        if not src.nbytes:
+            return
+        src = src.cast("B")
+        self.reserve(len(src))[:] = src
+        self.commit(len(src))
+
+    def _write_all(self, view) -> None:
+        while view:
+            try:
+                k = os.write(self.fd, view)
+            except OSError as exc:
+                if not (self.direct and exc.errno == errno.EINVAL):
+                    raise
+                self._buffered()  # the file system refused this direct write: the usual way from here on
+                continue
+            view = view[k:]
+            if view and self.direct and k % self.align:
+                self._buffered()  # a short write left the next address unaligned
+
+    def _buffered(self) -> None:
+        import fcntl
+        fcntl.fcntl(self.fd, fcntl.F_SETFL, fcntl.fcntl(self.fd, fcntl.F_GETFL) & ~os.O_DIRECT)
+        self.direct = False
+
+    def _release(self) -> None:
+        if self._view is not None:
+            self._view.release()
+            try:
+                self._buf.close()
+            except BufferError:  # a caller still holds a view of it: the memory goes with that view
+                pass
+        self._buf = self._view = None
+
+    def close(self) -> None:
+        """Write what is staged and close the file."""
+        if self.fd is None:
+            return
+        try:
+            if self._fill:
+                if self.direct:
+                    self._buffered()  # the last partial page
+                self._write_all(self._view[:self._fill])
+                self._fill = 0
+        finally:
+            os.close(self.fd)
+            self.fd = None
+            self._release()
+
+
 def is_disk_full(exc: BaseException) -> bool:
     """Whether ``exc`` (or what caused it) is a "no space left on device" / quota error."""
     seen = 0

@@ -6,6 +6,7 @@ from typing import Iterator
 
 import numpy as np
 
+from .buffers import RecyclingPool
 from .errors import InputError
 from .models import SpikeModel, block_generator, get_model
 from .profile import SensorProfile
@@ -49,6 +50,8 @@ class SpikeSimulator:
         self.block = int(self.model.block_intervals)
         self.n_done = 0  # intervals emitted so far
         self.finished = False
+        # packed spike blocks: a few in flight at once (the caller's, a writer's queue), then recycled
+        self._bits = RecyclingPool(np.uint8, keep=4)
 
     @property
     def interval_s(self) -> float:
@@ -79,7 +82,11 @@ class SpikeSimulator:
     def _run(self, m0: int, m1: int, packed: bool = False) -> np.ndarray:
         rng = block_generator(self.seed, self.model_name, m0 // self.block, self.implementation)
         if getattr(self.model, "uses_segments", False):
-            bits = self.model.run_segments(self.schedule.segments(m0, m1), self.state, rng)
+            # the block's bits go into a recycled array when the caller has dropped an earlier one (no fresh
+            # memory per block: see sensor.buffers); unpacked output only needs them for a moment
+            out = self._bits.take((m1 - m0, self.n_bytes))
+            bits = self.model.run_segments(self.schedule.segments(m0, m1), self.state, rng, out=out)
+            del out
             return bits if packed else unpack_frames(bits, self.profile.shape)
         out = self.model.run_block(self.schedule.rates(m0, m1), self.state, rng)
         return pack_frames(out) if packed else out

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sensor.buffers import RecyclingPool
+
 HELP = "simulate a spike stream from irradiance frames or a photoelectron-rate array"
 DESCRIPTION = """\
 Turn time-varying light into the spike stream of a spike camera.
@@ -169,41 +171,12 @@ def _stored_member_map(path: Path, name: str):
     return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=tuple(shape)), (info.CRC, crc)
 
 
-class _ChunkPool:
-    """Float32 chunk arrays recycled once nobody else holds them.
-
-    A fresh 20 MB array costs thousands of page faults and the zeroing of its memory (numpy asks for
-    transparent huge pages, which may also compact memory), on a machine whose cores the kernel
-    keeps busy; chunks of one input share a shape, so the reader takes back an array the simulator
-    has dropped (no reference left but the pool's: views of it count, through their ``base``).
-    """
+class _ChunkPool(RecyclingPool):
+    """Float32 chunk arrays recycled once nobody else holds them (:class:`sensor.buffers.RecyclingPool`):
+    chunks of one input share a shape, so the reader takes back an array the simulator has dropped."""
 
     def __init__(self, keep: int = 6):
-        self.keep = keep
-        self.arrays: list[np.ndarray] = []
-        # what sys.getrefcount reports, in this very loop, for an array nobody else holds (the pool's list,
-        # the loop variable, the call's argument: 3 on CPython 3.11-3.13): measured, not assumed, so an
-        # interpreter that counts differently cannot make the pool hand out an array still in use. Pooling
-        # is off where reference counts are deferred (free-threaded builds).
-        self._free = self._free_count() if getattr(sys, "_is_gil_enabled", lambda: True)() else None
-
-    def _free_count(self) -> int:
-        probe = [np.empty(1, np.float32)]
-        count = None
-        for a in probe:
-            count = sys.getrefcount(a)
-        return count
-
-    def take(self, shape) -> np.ndarray:
-        shape = tuple(shape)
-        for a in self.arrays if self._free is not None else ():
-            if a.shape == shape and sys.getrefcount(a) == self._free:
-                return a
-        a = np.empty(shape, np.float32)
-        if len(self.arrays) >= self.keep:
-            self.arrays.pop(0)
-        self.arrays.append(a)
-        return a
+        super().__init__(np.float32, keep)
 
 
 class RateSource:
@@ -359,8 +332,7 @@ class RateSource:
             out = self._pool.take((ov + j - i,) + self.shape)
             if ov:
                 out[:ov] = head
-            for q in range(i, j):
-                self.frames.read_scaled(q, scale, out[ov + q - i])
+            self.frames.read_scaled_many(i, j, scale, out[ov:])
             return out
         try:
             if self._member is not None:
@@ -476,7 +448,7 @@ def run(args) -> int:
     total = src.n_intervals(profile.interval_s)
     with SpikeWriter(args.out, interval_s=profile.interval_s, model=args.model, profile_id=profile.name,
                      seed=args.seed, source=str(Path(args.input).resolve()), implementation=sim.implementation,
-                     extra=extra, background=True) as writer, \
+                     extra=extra, background=True, expected_intervals=total) as writer, \
             tqdm(total=total, unit="interval", disable=args.quiet, desc="simulate") as bar:
         for rate, t, overlap in chunks:
             # the reader checked the rates (naming file and row) and hands each fresh chunk over; its first
@@ -550,8 +522,41 @@ def _start_up():
             gc.enable()
 
 
+def _lean_numba() -> None:
+    """In the ``render2spike`` command only: numba's optional extras stay unloaded.
+
+    When numba first loads a kernel it imports its NumPy support, which looks for SciPy's BLAS (for
+    ``np.dot`` and ``np.linalg`` in compiled code) and for cffi; importing ``scipy.linalg`` and cffi for
+    that took 0.10 of the command's 0.4-0.5 s start-up, and the spike kernels use neither. Here that
+    support is imported first with both hidden, so numba records them as absent for this process.
+    A program that imports the package (and may compile its own linear algebra) is left alone, as is a
+    process that has SciPy already."""
+    import importlib.abc
+
+    import render2spike
+    if not render2spike.cli_process() or "scipy" in sys.modules or "numba.np.arraymath" in sys.modules:
+        return
+
+    class _Hide(importlib.abc.MetaPathFinder):
+        def find_spec(self, name, path, target=None):
+            if name.split(".")[0] in ("scipy", "cffi"):
+                raise ImportError(f"{name} is not loaded by render2spike simulate")
+            return None
+
+    hide = _Hide()
+    sys.meta_path.insert(0, hide)
+    try:
+        import numba.core.typing.cffi_utils  # noqa: F401
+        import numba.np.arraymath  # noqa: F401
+    except ImportError:  # no numba: the reference simulator runs
+        pass
+    finally:
+        sys.meta_path.remove(hide)
+
+
 def _prepare(args, say):
     """Open INPUT and the profile, make the simulator, start reading, load the kernels."""
+    _lean_numba()
     from sensor import SensorProfile, SpikeSimulator
     from sensor.errors import InputError
 
