@@ -98,6 +98,7 @@ def m_overhead(cfg):
         def wrapped(self, t_s, *a, **k):
             if not st["times"]:
                 st["t_first"], st["rnd"], st["c_first"] = time.perf_counter(), self, time.process_time()
+                st["launches0"] = getattr(self, "n_launches", None)  # counted by the renderer (newer code)
             st["times"].append(t_s)
             st["verify"] = st.get("verify", 0) + bool(k.get("variance", True))  # frames with a second launch
             return orig(self, t_s, *a, **k)
@@ -110,6 +111,10 @@ def m_overhead(cfg):
         finally:
             rmod.SceneRenderer.render_frame = orig
         CPU["P"].append(c_end - st["c_first"])
+        if st["launches0"] is not None:  # verification launches really made (the first frame's can be the
+            # pilot's t = 0 render at the frame spp, no launch): launches in the block beyond one per frame
+            per_frame = len(st["rnd"].launch_counts(spp))
+            st["verify"] = (st["rnd"].n_launches - st["launches0"]) // per_frame - len(st["times"])
         return t_end - st["t_first"], st["t_first"] - t_all, res, st
 
     CPU = {"P": [], "B": []}  # process CPU time (all threads: render, writer) of each block
@@ -333,24 +338,31 @@ def write_report(res, meta, out_dir: Path) -> Path:
         L += ["## Throughput and pipeline overhead (adaptive off, fixed spp)", ""] + intro + [
               "Blocks of frames in the order pipeline, bare, bare, pipeline (`--rounds` times, 2 by default; the row's blocks are in 'per block'); the pipeline "
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
-              "background writer, journal, manifest). It includes the noise verification launches (the first "
-              "frame of every render, then every `VERIFY_EVERY`-th: 1 extra launch per block of up to "
-              "`VERIFY_EVERY` frames); 'without verification' takes one bare frame per verification launch out. 'per block': each pipeline block over its neighbouring bare block. "
+              "background writer, journal, manifest). It includes the noise verification launches actually made "
+              "(every `VERIFY_EVERY`-th frame and the first; the first frame's second render is the pilot's "
+              "t = 0 render at the frame spp where the pilot made one, no launch, since 2026-11-24 09:00; "
+              "before, 1 extra launch per block of up to `VERIFY_EVERY` frames); 'without verification' takes "
+              "one bare frame per verification launch made out. 'per block': each pipeline block over its neighbouring bare block. "
               "'median block': the median of those, which one block disturbed by another process moves less. "
               "'CPU': the same ratio as 'overhead' in process CPU time (all threads), which other processes on "
               "the machine also disturb less.", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
               "| without verification | median block | CPU | per block | load before-after |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for r in res["overhead"]:
-            L.append(f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
-                     f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
-                     f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
-                     f"{_fmt(float(np.median(r['overhead_ratio_blocks'])) if r.get('overhead_ratio_blocks') else None, 3)} | "
-                     f"{_fmt(r.get('cpu_overhead_ratio'), 3)} | "
-                     + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " | "
-                     + (f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}" if r.get("load_before") else "") + " |")
-        L.append("")
+        head = L[-2:]
+
+        def row(r):
+            return (f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
+                    f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
+                    f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
+                    f"{_fmt(float(np.median(r['overhead_ratio_blocks'])) if r.get('overhead_ratio_blocks') else None, 3)} | "
+                    f"{_fmt(r.get('cpu_overhead_ratio'), 3)} | "
+                    + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " | "
+                    + (f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}" if r.get("load_before") else "") + " |")
+        L += [row(r) for r in res["overhead"]] + [""]
+        if res.get("overhead_old"):
+            L += ["The older code (`--old`, `--old-for overhead`), each point measured right after the row above "
+                  "of the same scene and resolution:", ""] + head + [row(r) for r in res["overhead_old"]] + [""]
     if res.get("keyframes"):
         L += ["## Keyframes per camera-second (window, budget spp, shortened clip)", ""] + when("keyframes", "keyframes_old") + [
               "| scene | lux | spp now | clip s | base keyframes | keyframes/s now | keyframes/s old | spp old |",
@@ -431,7 +443,9 @@ def main(argv=None):
     ap.add_argument("--wait-frames", type=int, default=2, help="frames timed per wait point (default 2)")
     ap.add_argument("--skip", nargs="*", default=[], choices=["write", "overhead", "keyframes", "noise", "wait"])
     ap.add_argument("--old-for", nargs="*", default=["keyframes", "noise", "wait"],
-                    choices=["keyframes", "noise", "wait"], help="sections that also measure --old (default all)")
+                    choices=["overhead", "keyframes", "noise", "wait"],
+                    help="sections that also measure --old (default keyframes, noise, wait; 'overhead' measures "
+                         "each overhead point with the old code right after the new one)")
     ap.add_argument("--merge", action="store_true",
                     help="keep the sections (and old-code rows) not measured now from the existing render.json in "
                          "--out; each section records when and under which load it was measured")
@@ -491,22 +505,29 @@ def main(argv=None):
     if "overhead" not in a.skip:
         l0 = now_load()
         res["overhead"] = []
+        if "overhead" in old_for:
+            res["overhead_old"] = []
         for sc in a.scenes:
             for size, sets, n, spp in (("window", [], a.frames, a.spp), ("full", full, a.full_frames, a.full_spp)):
                 if size not in a.sizes:
                     continue
-                lb = now_load()
-                r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets, "rounds": a.rounds})
-                r.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), load_before=lb, load_after=now_load())
-                res["overhead"].append(r)
-                say(f"overhead {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
-                    f"{r['overhead_ratio']:.3f}")
+                for key, tree in (("overhead", None), ("overhead_old", old)):
+                    if key == "overhead_old" and "overhead" not in old_for:
+                        continue
+                    lb = now_load()
+                    r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets, "rounds": a.rounds},
+                             tree)
+                    r.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), load_before=lb, load_after=now_load())
+                    res[key].append(r)
+                    say(f"{key} {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
+                        f"{r['overhead_ratio']:.3f}")
         mark("overhead", l0)
-        if prev.get("overhead"):  # --merge: rows (scene, resolution) not measured now are kept
-            have = {(r["scene"], r["resolution"]) for r in res["overhead"]}
-            rows = res["overhead"] + [r for r in prev["overhead"] if (r["scene"], r["resolution"]) not in have]
-            order = {sc: i for i, sc in enumerate(SCENES)}
-            res["overhead"] = sorted(rows, key=lambda r: (order.get(r["scene"], 99), r["resolution"] == "250x400"))
+        for key in ("overhead", "overhead_old"):
+            if prev.get(key) and key in res:  # --merge: rows (scene, resolution) not measured now are kept
+                have = {(r["scene"], r["resolution"]) for r in res[key]}
+                rows = res[key] + [r for r in prev[key] if (r["scene"], r["resolution"]) not in have]
+                order = {sc: i for i, sc in enumerate(SCENES)}
+                res[key] = sorted(rows, key=lambda r: (order.get(r["scene"], 99), r["resolution"] == "250x400"))
     if "keyframes" not in a.skip:
         for key, tree in (("keyframes", None), ("keyframes_old", old)):
             if key == "keyframes_old" and "keyframes" not in old_for:

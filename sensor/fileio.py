@@ -261,8 +261,16 @@ def write_text_atomic(path, text: str) -> Path:
 
 
 def write_json_atomic(path, obj) -> Path:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
-    return write_text_atomic(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    """Write ``obj`` as indented JSON to ``path`` atomically (:func:`write_bytes_atomic`: one buffer).
+
+    The text is ASCII (``json.dumps`` escapes everything else), so its bytes do not depend on the locale.
+    """
+    return write_bytes_atomic(path, json_bytes(obj))
+
+
+def json_bytes(obj) -> bytes:
+    """What :func:`write_json_atomic` writes for ``obj``: indented JSON and a newline, ASCII."""
+    return (json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n").encode("ascii")
 
 
 def _json_default(o):

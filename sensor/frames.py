@@ -695,6 +695,11 @@ def read_frames(folder) -> FrameSequence:
 
 def write_manifest(folder, height: int, width: int, frames: list[dict], **extra) -> Path:
     """Write ``frames.json`` atomically. ``frames``: [{"file": ..., "time_s": ...}, ...] (sorted here)."""
+    return write_json_atomic(Path(folder) / MANIFEST_NAME, manifest_record(height, width, frames, **extra))
+
+
+def manifest_record(height: int, width: int, frames: list[dict], **extra) -> dict:
+    """The content :func:`write_manifest` writes (for a writer that prepares it before it may write it)."""
     frames = sorted(frames, key=lambda f: f["time_s"])
     manifest = {
         "format": FORMAT_NAME,
@@ -707,7 +712,7 @@ def write_manifest(folder, height: int, width: int, frames: list[dict], **extra)
     }
     manifest.update(extra)
     manifest.setdefault("provenance", provenance())
-    return write_json_atomic(Path(folder) / MANIFEST_NAME, manifest)
+    return manifest
 
 
 def write_frames(folder, phi, times_s, focal_lux=None, attrs: dict | None = None, manifest: dict | None = None) -> Path:

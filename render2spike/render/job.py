@@ -49,8 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import provenance, write_json_atomic
-from sensor.frames import MANIFEST_NAME, read_frame, write_manifest
+from sensor.fileio import json_bytes, provenance, write_bytes_atomic, write_json_atomic
+from sensor.frames import MANIFEST_NAME, manifest_record, read_frame
 from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
@@ -198,6 +198,7 @@ def _write_state(out: Path, state: dict) -> None:
     write_json_atomic(out / STATE_NAME, {k: v for k, v in state.items() if k != "frames"})
 
 
+
 def settings_of(scene: Scene, variant: str) -> dict:
     """Everything besides the scene data that changes the frames (part of the hash)."""
     # variant_family keeps GPU (cuda) and CPU (llvm/scalar) frames apart; procedure 2: exact spp in one
@@ -287,7 +288,12 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
 
     # ---- noise budget: pilot pairs at t = 0, convergence fitted (noise.pilot_budget) -----------
     K = keyframes_per_window(W, scene.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
-    budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale, snap=rcfg["spp"] == "auto")
+    # with a fixed spp, a pilot render at t = 0 and that spp is the first frame's second (verification)
+    # render: no launch added. Not with spp = auto: the snapping chose the spp on those very pairs, and the
+    # verification is there to check that choice on renders it did not see
+    keep = rnd.keep_renders() if rcfg["spp"] != "auto" else contextlib.nullcontext()
+    with keep:
+        budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rate_scale, snap=rcfg["spp"] == "auto")
     if "spp" in state and "noise_budget" in state:  # resuming: the frames already made fix the spp
         budget = state["noise_budget"]
         spp = int(state["spp"])
@@ -343,11 +349,13 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             return fr.phi.astype(np.float64)
         # the achieved ratio is measured on the first and every VERIFY_EVERY-th (128th) frame (one extra render each)
         f = rnd.render_frame(t_s, int(rcfg["seed"]), spp, variance=n_rendered % VERIFY_EVERY == 0)
-        rate_var = None if f["phi_var"] is None else f["phi_var"] * rate_scale ** 2
-        ratio = render_noise_ratio(f["phi"] * rate_scale, rate_var, W, K)
+        if f["phi_var"] is None:
+            ratio = float("nan")  # what render_noise_ratio gives without a variance
+        else:
+            ratio = render_noise_ratio(f["phi"] * rate_scale, f["phi_var"] * rate_scale ** 2, W, K)
         ratios.append(ratio)
-        bad = ~np.isfinite(f["phi"]) | ~np.isfinite(f["lux"])
-        if bad.any():
+        if not (np.isfinite(f["phi"]).all() and np.isfinite(f["lux"]).all()):
+            bad = ~np.isfinite(f["phi"]) | ~np.isfinite(f["lux"])
             r, c = (int(x) for x in np.argwhere(bad)[0])
             raise InputError(f"the frame at t = {t_s:.6g} s has {int(bad.sum())} non-finite pixel(s), first at row "
                              f"{r}, column {c}: check the scene's light and material values", path=scene.path)
@@ -375,55 +383,61 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         wrote["any"] = True
 
     try:
-        # the writer is closed (queued frames finished) before the journal, and both before the manifest
-        with journal_file, FrameWriter(on_written=journal) as writer:
+        # the writer finishes the queued frames and closes (fsyncs) the journal, in its thread, while the
+        # manifest is prepared here; both are done (the thread joined) before the manifest is written
+        with journal_file, FrameWriter(on_written=journal, on_stop=journal_file.close) as writer:
             ticks = adaptive_ticks(grid, get_frame, metric, float(acfg["tolerance"]), on_new=on_new,
                                    adaptive=bool(acfg["enabled"]))
+            writer.stop()
+            if bar:
+                bar.close()
+            frames = [{"file": state["frames"][str(t)]["file"], "time_s": grid.time(t)} for t in ticks]
+            # frames rendered in a run that refined differently are not part of the result: drop them
+            keep = {str(t) for t in ticks}
+            for k in [k for k in state["frames"] if k not in keep]:
+                (out / state["frames"][k]["file"]).unlink(missing_ok=True)
+                del state["frames"][k]
+            all_ratios = [state["frames"][str(t)].get("render_noise_ratio", float("nan")) for t in ticks]
+            verified, warn = verify_ratios(all_ratios, float(ncfg["target_ratio"]), rcfg["spp"] == "auto", budget)
+            if warn:
+                log(f"render: warning: {warn}")
+            seconds = time.perf_counter() - t_start
+            prof = scene.profile
+            extra = {
+                "complete": True,
+                "scene_hash": scene_hash,
+                "scene": {"name": scene.name, "path": str(scene.path), "description": scene.data.get("description", "")},
+                "scene_data": scene.data,
+                "illuminance_lux": scene.illuminance_lux,
+                "reference": rnd.calibration,
+                "emitter_scale_w_per_raw": rnd.k,
+                "camera": {"focal_length_mm": scene.camera["focal_length_mm"], "f_number": rnd.f_number,
+                           "transmission": rnd.transmission, "pixel_pitch_m": prof.pixel_pitch_m,
+                           "fill_factor": prof.fill_factor},
+                "profile": {"name": prof.name, "spec": scene.camera["profile"], "height": prof.height, "width": prof.width},
+                "variant": variant,
+                "spp": spp,
+                "noise_budget": budget,
+                "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
+                                       "max": float(np.nanmax(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
+                                       "window_intervals": W, "keyframes_per_window": K, **verified},
+                "temporal_sampling": {"base_rate_hz": float(rcfg["keyframe_rate_hz"]), "max_rate_hz": float(acfg["max_rate_hz"]),
+                                      "tolerance": float(acfg["tolerance"]), "adaptive": bool(acfg["enabled"]),
+                                      "n_base": grid.n_base + 1, "n_keyframes": len(ticks),
+                                      "n_refined": len(ticks) - grid.n_base - 1},
+                "n_rendered_this_run": n_rendered,
+                "n_resumed": n_resumed,
+                "render_seconds": seconds,
+                "provenance": provenance(stage="render"),
+            }
+            manifest = json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+            # the two files' text, written once the writer is done (the manifest first, then the state)
+            manifest_text = json_bytes(manifest_record(prof.height, prof.width, frames, **manifest))
+            state_text = json_bytes({**{k: v for k, v in state.items() if k != "frames"}, "complete": True})
     finally:
         if bar:
             bar.close()
-    frames = [{"file": state["frames"][str(t)]["file"], "time_s": grid.time(t)} for t in ticks]
-    # frames rendered in a run that refined differently are not part of the result: drop them
-    keep = {str(t) for t in ticks}
-    for k in [k for k in state["frames"] if k not in keep]:
-        (out / state["frames"][k]["file"]).unlink(missing_ok=True)
-        del state["frames"][k]
-    all_ratios = [state["frames"][str(t)].get("render_noise_ratio", float("nan")) for t in ticks]
-    verified, warn = verify_ratios(all_ratios, float(ncfg["target_ratio"]), rcfg["spp"] == "auto", budget)
-    if warn:
-        log(f"render: warning: {warn}")
-    seconds = time.perf_counter() - t_start
-    prof = scene.profile
-    extra = {
-        "complete": True,
-        "scene_hash": scene_hash,
-        "scene": {"name": scene.name, "path": str(scene.path), "description": scene.data.get("description", "")},
-        "scene_data": scene.data,
-        "illuminance_lux": scene.illuminance_lux,
-        "reference": rnd.calibration,
-        "emitter_scale_w_per_raw": rnd.k,
-        "camera": {"focal_length_mm": scene.camera["focal_length_mm"], "f_number": rnd.f_number,
-                   "transmission": rnd.transmission, "pixel_pitch_m": prof.pixel_pitch_m,
-                   "fill_factor": prof.fill_factor},
-        "profile": {"name": prof.name, "spec": scene.camera["profile"], "height": prof.height, "width": prof.width},
-        "variant": variant,
-        "spp": spp,
-        "noise_budget": budget,
-        "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
-                               "max": float(np.nanmax(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,
-                               "window_intervals": W, "keyframes_per_window": K, **verified},
-        "temporal_sampling": {"base_rate_hz": float(rcfg["keyframe_rate_hz"]), "max_rate_hz": float(acfg["max_rate_hz"]),
-                              "tolerance": float(acfg["tolerance"]), "adaptive": bool(acfg["enabled"]),
-                              "n_base": grid.n_base + 1, "n_keyframes": len(ticks),
-                              "n_refined": len(ticks) - grid.n_base - 1},
-        "n_rendered_this_run": n_rendered,
-        "n_resumed": n_resumed,
-        "render_seconds": seconds,
-        "provenance": provenance(stage="render"),
-    }
-    manifest = json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
-    write_manifest(out, prof.height, prof.width, frames, **manifest)
+    write_bytes_atomic(out / MANIFEST_NAME, manifest_text)
+    write_bytes_atomic(out / STATE_NAME, state_text)
     state["complete"] = True
-    _write_state(out, state)
-    return RenderResult(out, len(frames), n_rendered, spp, scene_hash, seconds, False,
-                        _read_json(out / MANIFEST_NAME) or {})
+    return RenderResult(out, len(frames), n_rendered, spp, scene_hash, seconds, False, json.loads(manifest_text))

@@ -54,7 +54,9 @@ spp and at ``c``, plus usually two at the answer and its neighbour, once.
 The budget is then *verified*: some frames (the first, then every
 :data:`VERIFY_EVERY`-th rendered) get a second, independent render whose
 difference measures that frame's ``rho`` (the frame itself is the first render,
-so it has exactly the asked spp); the ratio is recorded in the frame header and
+so it has exactly the asked spp; with a fixed spp, the first frame's second
+render is the pilot's t = 0 render at that spp when there is one, see
+:meth:`.renderer.SceneRenderer.keep_renders`); the ratio is recorded in the frame header and
 summarised in the manifest, with a warning when it misses the band
 ``[0.75, 1.25] x target`` (:func:`verify_ratios`).
 """

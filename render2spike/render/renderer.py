@@ -16,6 +16,7 @@ for each time ``t_s``:
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -62,6 +63,10 @@ class SceneRenderer:
         self.params = mi.traverse(self.mi_scene)
         self.sensor = self.mi_scene.sensors()[0]
         self._moving = {}
+        self._t_set = None  # the time the moving objects are at (set_time)
+        self.n_launches = 0  # mi.render launches so far (benchmarks count the verification launches with it)
+        self._kept = None  # {(t_s, spp): (seed, raw Phi)} of single-launch renders, while keep_renders() is on
+        self._reusable = None  # what keep_renders() kept, until the first verified frame
         for key, (motion, shape_m) in self.motions.items():
             if motion.is_static:
                 continue
@@ -100,8 +105,13 @@ class SceneRenderer:
         return not self._moving
 
     def set_time(self, t_s: float) -> None:
-        """Move every moving object and the camera to their poses at ``t_s`` [s]."""
-        if not self._moving:
+        """Move every moving object and the camera to their poses at ``t_s`` [s].
+
+        A call at the time already set does nothing: the poses would be the same, and the update
+        would make Mitsuba rebuild its ray-tracing structure and wait for the kernels in flight
+        (the frame and its verification launch, or the launches of an spp taken in parts, share a time).
+        """
+        if not self._moving or t_s == self._t_set:
             return
         mi = self.mi
         for key, (kind, pkey, motion, shape_m, local) in self._moving.items():
@@ -112,15 +122,47 @@ class SceneRenderer:
                 v = (m @ np.c_[local, np.ones(len(local))].T).T[:, :3]
                 self.params[pkey] = mi.Float(v.astype(np.float32).ravel())
         self.params.update()
+        self._t_set = t_s
 
     # ----------------------------------------------------------- rendering
-    def render_raw(self, t_s: float, seed: int, spp: int) -> tuple[np.ndarray, np.ndarray]:
-        """Raw film channels (Phi_raw, E_raw), float64 (H, W), at ``t_s`` with ``spp`` samples per pixel."""
+    def launch(self, t_s: float, seed: int, spp: int):
+        """Start one ``mi.render`` at ``t_s`` with ``spp`` samples per pixel; the film tensor, not yet waited for.
+
+        Dr.Jit's LLVM backend runs the kernel asynchronously: :meth:`channels` waits for it. Launching
+        a second render before waiting for the first (a frame and its verification launch) lets the
+        second one be traced while the first one's kernel runs.
+        """
         self.set_time(t_s)
-        img = self.mi.render(self.mi_scene, sensor=self.sensor, seed=int(seed), spp=int(spp))
+        self.n_launches += 1
+        return self.mi.render(self.mi_scene, sensor=self.sensor, seed=int(seed), spp=int(spp))
+
+    def channels(self, img) -> tuple[np.ndarray, np.ndarray]:
+        """(Phi_raw, E_raw), float64 (H, W), of a film tensor from :meth:`launch` (waits for its kernel)."""
         arr = np.asarray(img, dtype=np.float64)
         names = self._channel_names()
         return arr[..., names.index("Phi")], arr[..., names.index("E")]
+
+    def render_raw(self, t_s: float, seed: int, spp: int) -> tuple[np.ndarray, np.ndarray]:
+        """Raw film channels (Phi_raw, E_raw), float64 (H, W), at ``t_s`` with ``spp`` samples per pixel."""
+        raw_p, raw_e = self.channels(self.launch(t_s, seed, spp))
+        if self._kept is not None:
+            self._kept[(float(t_s), int(spp))] = (int(seed), raw_p)
+        return raw_p, raw_e
+
+    @contextlib.contextmanager
+    def keep_renders(self):
+        """Keep the raw Phi of each :meth:`render_raw` made inside (the last one per time and spp).
+
+        The render job keeps the pilot's renders at t = 0: when one was made at the frame's spp in one
+        launch, the first frame (also at t = 0) takes it as the independent second render of its noise
+        verification (:meth:`render_frame`) instead of launching one more render of the same kind.
+        """
+        self._kept = {}
+        try:
+            yield self
+        finally:
+            kept, self._kept = self._kept, None
+            self._reusable = kept
 
     def _channel_names(self):
         if not hasattr(self, "_names"):
@@ -155,17 +197,35 @@ class SceneRenderer:
             cache[spp] = out
         return cache[spp]
 
-    def render_exact(self, t_s: float, seeds, spp: int) -> tuple[np.ndarray, np.ndarray]:
-        """Raw channels at ``t_s`` with exactly ``spp`` samples per pixel (:meth:`launch_counts`, one seed each)."""
-        counts = self.launch_counts(spp)
-        if len(counts) == 1:
-            return self.render_raw(t_s, seeds[0], counts[0])
+    def _launch_exact(self, t_s: float, seeds, spp: int) -> list:
+        return [(n, self.launch(t_s, s, n)) for n, s in zip(self.launch_counts(spp), seeds)]
+
+    def _finish_exact(self, launched: list, spp: int) -> tuple[np.ndarray, np.ndarray]:
+        if len(launched) == 1:
+            return self.channels(launched[0][1])
         acc_p = acc_e = 0.0
-        for n, s in zip(counts, seeds):
-            p, e = self.render_raw(t_s, s, n)
+        for n, img in launched:
+            p, e = self.channels(img)
             acc_p = acc_p + p * n
             acc_e = acc_e + e * n
         return acc_p / spp, acc_e / spp
+
+    def render_exact(self, t_s: float, seeds, spp: int) -> tuple[np.ndarray, np.ndarray]:
+        """Raw channels at ``t_s`` with exactly ``spp`` samples per pixel (:meth:`launch_counts`, one seed each)."""
+        return self._finish_exact(self._launch_exact(t_s, seeds, spp), spp)
+
+    def _reused_render(self, t_s: float, spp: int, own_seeds) -> tuple[int, np.ndarray] | None:
+        """A kept pilot render (seed, raw Phi) at ``t_s`` and ``spp`` made in one launch, or None.
+
+        Only the first verified frame after :meth:`keep_renders` is offered the kept renders (the
+        render job's first frame, at t = 0 like the pilot); they are dropped then."""
+        kept, self._reusable = self._reusable, None  # offered to the first verified frame only
+        if not kept or len(self.launch_counts(spp)) != 1:
+            return None
+        hit = kept.get((float(t_s), int(spp)))
+        if hit is None or hit[0] in own_seeds:  # never the frame's own seed (they would not be independent)
+            return None
+        return hit
 
     def render_frame(self, t_s: float, base_seed: int, spp: int, variance: bool = True) -> dict:
         """Physical frame at ``t_s`` [s]: ``phi`` [e-/(s m^2)], ``lux`` [lux], ``phi_var`` (MC variance of phi).
@@ -174,16 +234,26 @@ class SceneRenderer:
         takes that count exactly (:meth:`launch_counts`). With ``variance=True`` a second,
         independent render of the same spp is made; ``phi_var = (a - b)^2 / 2`` is then the
         per-pixel variance of the returned frame (which is the first render). Without it
-        ``phi_var`` is None and the frame costs one render.
+        ``phi_var`` is None and the frame costs one render. Both renders are launched before
+        either is waited for (the second is traced while the first one's kernel runs). When a
+        render of the same time and spp in one launch was kept from the pilot
+        (:meth:`keep_renders`), it is the second render (``variance_seeds`` then names its seed)
+        and no launch is added.
         """
         counts = self.launch_counts(spp)
         seeds = frame_seeds(base_seed, t_s, 2 * len(counts))
         sa, sb = seeds[:len(counts)], seeds[len(counts):]
-        raw_p, raw_e = self.render_exact(t_s, sa, spp)
+        launched_a = self._launch_exact(t_s, sa, spp)
+        reused = self._reused_render(t_s, spp, sa) if variance else None
+        launched_b = self._launch_exact(t_s, sb, spp) if variance and reused is None else None
+        raw_p, raw_e = self._finish_exact(launched_a, spp)
         phi, lux = to_physical(raw_p, raw_e, self.k, self.f_number, self.transmission, self.cos4)
         out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": list(sa), "spp": int(spp), "phi_var": None}
         if variance:
-            pb, _ = self.render_exact(t_s, sb, spp)
+            if reused is not None:
+                sb, pb = [reused[0]], reused[1]
+            else:
+                pb, _ = self._finish_exact(launched_b, spp)
             fp, _ = to_physical(1.0, 1.0, self.k, self.f_number, self.transmission, self.cos4)
             out["phi_var"] = (raw_p - pb) ** 2 / 2.0 * fp ** 2
             out["variance_seeds"] = list(sb)

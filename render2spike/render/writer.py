@@ -52,13 +52,20 @@ class FrameWriter:
     write : callable, optional
         The frame writer, ``write(path, phi, lux, time_s=..., attrs=...)``
         (default :func:`sensor.frames.write_frame`; tests inject failures here).
+    on_stop : callable() -> None, optional
+        Called in the writer thread after the last queued frame, once :meth:`stop` or
+        :meth:`close` asked it to end, unless an error stopped it (the render job closes, and
+        so fsyncs, its journal here while it prepares the manifest). Its error is raised like a
+        write error.
     """
 
-    def __init__(self, on_written=None, max_pending: int = 2, write=None):
+    def __init__(self, on_written=None, max_pending: int = 2, write=None, on_stop=None):
         if write is None:
             from sensor.frames import write_frame as write
         self._write = write
         self._on_written = on_written
+        self._on_stop = on_stop
+        self._stopping = False
         self._q: queue.Queue = queue.Queue(maxsize=max(1, int(max_pending)))
         self._error: BaseException | None = None
         self.n_written = 0
@@ -72,6 +79,11 @@ class FrameWriter:
             job = self._q.get()
             try:
                 if job is _STOP:
+                    if self._on_stop is not None and self._error is None:
+                        try:
+                            self._on_stop()
+                        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+                            self._error = exc
                     return
                 if self._error is not None:
                     continue  # stopped by an earlier error: drop (not journalled, rendered again on resume)
@@ -95,8 +107,8 @@ class FrameWriter:
     def submit(self, path, phi, lux, *, time_s: float, attrs: dict | None = None, record=None) -> None:
         """Queue one frame (arrays are kept as given: do not modify them afterwards); raise a writer error."""
         self.check()
-        if self._closed:
-            raise RuntimeError("FrameWriter.submit after close")
+        if self._closed or self._stopping:
+            raise RuntimeError("FrameWriter.submit after close (or stop)")
         while True:  # put with a timeout, so a writer that failed meanwhile cannot leave us blocked
             try:
                 self._q.put((path, phi, lux, float(time_s), attrs, record), timeout=0.5)
@@ -111,11 +123,18 @@ class FrameWriter:
         self._q.join()
         self.check()
 
+    def stop(self) -> None:
+        """Let the thread end after the frames already queued (and ``on_stop``), without waiting for it;
+        no frame can be submitted after this. :meth:`close` waits for it."""
+        if not self._stopping:
+            self._stopping = True
+            self._q.put(_STOP)
+
     def close(self, raise_error: bool = True) -> None:
         """Finish the queued frames, stop the thread and (``raise_error``) raise its error, if any."""
         if not self._closed:
             self._closed = True
-            self._q.put(_STOP)
+            self.stop()
             self._thread.join()
         if raise_error:
             self.check()

@@ -1,0 +1,188 @@
+"""The render loop's cheaper paths: launches made before they are waited for, a pilot render reused as the first
+frame's verification render, set_time at an unchanged time, the writer's on_stop, JSON in one buffer."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from render2spike.render.writer import FrameWriter
+from tests.render.conftest import needs_mitsuba
+
+MOVING = [
+    {"name": "back", "shape": "rectangle", "size": [10, 10], "position": [0, 0, -0.5], "material": {"reflectance": 0.3}},
+    {"name": "thing", "shape": "cube", "size": [0.02, 0.02, 0.02], "position": [0, 0, 0], "material": {"reflectance": 0.8},
+     "motion": {"parametric": [{"translate": {"velocity_m_s": [0.25, 0.1, 0.0]}}]}},
+]
+
+
+def _renderer(write_scene, objects=None):
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    changes = {"objects": objects, "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}} if objects else None
+    return SceneRenderer(load_scene(write_scene(changes)))
+
+
+@needs_mitsuba
+def test_frame_with_verification_is_the_frame_without_and_both_launches_precede_the_wait(write_scene):
+    r = _renderer(write_scene, MOVING)
+    seen = []
+    n0 = r.n_launches
+    orig = r.channels
+
+    def channels(img):  # the first wait for a kernel comes after both launches
+        seen.append(r.n_launches - n0)
+        return orig(img)
+    r.channels = channels
+    f = r.render_frame(0.004, 7, 16, variance=True)
+    del r.channels
+    assert seen == [2, 2] and r.n_launches - n0 == 2
+    g = r.render_frame(0.004, 7, 16, variance=False)
+    np.testing.assert_array_equal(f["phi"], g["phi"])
+    np.testing.assert_array_equal(f["lux"], g["lux"])
+    # the second render is the old path's: an independent render with the variance seeds
+    from render2spike.render.photometry import to_physical
+    pa, _ = r.render_raw(0.004, f["seeds"][0], 16)
+    pb, _ = r.render_raw(0.004, f["variance_seeds"][0], 16)
+    fp, _ = to_physical(1.0, 1.0, r.k, r.f_number, r.transmission, r.cos4)
+    np.testing.assert_array_equal(f["phi_var"], (pa - pb) ** 2 / 2.0 * fp ** 2)
+
+
+@needs_mitsuba
+def test_a_kept_pilot_render_is_the_first_verified_frames_second_render(write_scene):
+    from render2spike.render.photometry import to_physical
+    r = _renderer(write_scene)
+    with r.keep_renders():
+        kept_p, _ = r.render_raw(0.0, 12345, 16)
+        r.render_raw(0.0, 999, 4)  # another spp: not used
+    n0 = r.n_launches
+    f = r.render_frame(0.0, 3, 16, variance=True)
+    assert r.n_launches - n0 == 1 and f["variance_seeds"] == [12345]  # no launch added
+    raw_a, _ = r.render_raw(0.0, f["seeds"][0], 16)
+    fp, _ = to_physical(1.0, 1.0, r.k, r.f_number, r.transmission, r.cos4)
+    np.testing.assert_array_equal(f["phi_var"], (raw_a - kept_p) ** 2 / 2.0 * fp ** 2)
+    # only the first verified frame is offered the kept renders; later ones launch their own
+    n0 = r.n_launches
+    g = r.render_frame(0.0, 4, 16, variance=True)
+    assert r.n_launches - n0 == 2 and g["variance_seeds"] != [12345]
+
+
+@needs_mitsuba
+def test_kept_render_at_another_time_or_a_split_spp_is_not_reused(write_scene):
+    r = _renderer(write_scene)
+    with r.keep_renders():
+        r.render_raw(0.0, 12345, 16)
+    n0 = r.n_launches
+    r.render_frame(0.001, 3, 16, variance=True)  # another time: its own second launch
+    assert r.n_launches - n0 == 2
+    assert len(r.launch_counts(17)) == 2
+    with r.keep_renders():
+        r.render_raw(0.0, 12345, 17)
+    n0 = r.n_launches
+    r.render_frame(0.0, 3, 17, variance=True)  # 17 spp takes two launches: nothing kept matches
+    assert r.n_launches - n0 == 4
+
+
+@needs_mitsuba
+def test_set_time_at_the_time_already_set_does_not_update_the_scene(write_scene, monkeypatch):
+    r = _renderer(write_scene, MOVING)
+    updates = []
+    orig = r.params.update
+    monkeypatch.setattr(r.params, "update", lambda *a, **k: (updates.append(1), orig(*a, **k))[1])
+    r.set_time(0.003)
+    r.set_time(0.003)
+    assert len(updates) == 1
+    r.set_time(0.004)
+    assert len(updates) == 2
+    # and a frame rendered after a skipped update is the frame rendered after a fresh one
+    a = r.render_frame(0.004, 1, 16, variance=False)["phi"]
+    r.set_time(0.0)
+    b = r.render_frame(0.004, 1, 16, variance=False)["phi"]
+    np.testing.assert_array_equal(a, b)
+
+
+def test_writer_on_stop_runs_in_the_thread_after_the_last_frame(tmp_path):
+    import threading
+    order = []
+    main = threading.get_ident()
+    w = FrameWriter(on_written=lambda rec: order.append(rec),
+                    on_stop=lambda: order.append(("stop", threading.get_ident() != main)))
+    for i in range(3):
+        w.submit(tmp_path / f"f{i}.exr", np.zeros((2, 3), np.float32), None, time_s=0.0, record=i)
+    w.stop()
+    with pytest.raises(RuntimeError, match="after close"):
+        w.submit(tmp_path / "late.exr", np.zeros((2, 3), np.float32), None, time_s=0.0)
+    w.close()
+    assert order == [0, 1, 2, ("stop", True)]
+
+
+def test_writer_on_stop_is_skipped_after_an_error_and_its_own_error_is_raised(tmp_path):
+    calls = []
+
+    def bad_write(*a, **k):
+        raise OSError("no")
+    w = FrameWriter(write=bad_write, on_stop=lambda: calls.append(1))
+    w.submit(tmp_path / "f.exr", np.zeros((2, 3), np.float32), None, time_s=0.0)
+    with pytest.raises(OSError, match="no"):
+        w.close()
+    assert calls == []
+    boom = ValueError("journal")
+
+    def stop():
+        raise boom
+    w = FrameWriter(on_stop=stop)
+    with pytest.raises(ValueError) as err:
+        w.close()
+    assert err.value is boom
+
+
+def test_write_json_atomic_writes_the_indented_text_with_the_usual_permissions(tmp_path):
+    from sensor.fileio import write_json_atomic
+    obj = {"a": [1, 2.5, None], "b": {"c": "é"}, "d": np.float64(0.1), "e": np.arange(3)}
+    p = write_json_atomic(tmp_path / "x.json", obj)
+    want = json.dumps({"a": [1, 2.5, None], "b": {"c": "é"}, "d": 0.1, "e": [0, 1, 2]}, indent=2) + "\n"
+    assert p.read_bytes() == want.encode("ascii")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (p.stat().st_mode & 0o777) == (0o666 & ~umask)
+    assert [q.name for q in tmp_path.iterdir()] == ["x.json"]  # no temp file beside it
+
+
+@needs_mitsuba
+@pytest.mark.parametrize("spp", [16, "auto"])
+def test_render_job_reuses_the_pilot_render_for_its_first_verification_only_with_a_fixed_spp(
+        write_scene, tmp_path, monkeypatch, spp):
+    """A fixed spp: the first frame's verification takes the pilot's t = 0 render at that spp (no launch).
+    spp = auto: the snapping chose the spp on those pairs, so the verification launches its own render."""
+    from render2spike.render import renderer as rmod
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    import copy
+    from tests.render.conftest import BASE
+    render = copy.deepcopy(BASE["render"])
+    render.update(spp=spp, adaptive={"enabled": False})
+    sc = load_scene(write_scene({"render": render, "duration_s": 0.01}))
+    frames = {"n": 0}
+    orig = rmod.SceneRenderer.render_frame
+
+    def counting(self, *a, **k):
+        if frames["n"] == 0:
+            frames["launches0"] = self.n_launches
+            frames["rnd"] = self
+        frames["n"] += 1
+        return orig(self, *a, **k)
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", counting)
+    res = render_scene(sc, tmp_path / "out", progress=False, log=lambda *a: None)
+    rnd = frames["rnd"]
+    per_frame = len(rnd.launch_counts(res.spp))
+    extra = (rnd.n_launches - frames["launches0"]) // per_frame - res.n_frames
+    ratios = [f for f in json.loads((tmp_path / "out" / "frames.json").read_text())["frames"]]
+    assert res.n_frames == frames["n"] == len(ratios) == 3
+    if spp == 16:
+        assert extra == 0
+    else:
+        assert extra == 1 and per_frame == 1
+    # the first frame carries a measured ratio either way
+    from sensor.frames import read_frame
+    assert np.isfinite(read_frame(tmp_path / "out" / ratios[0]["file"]).header["render_noise_ratio"])
