@@ -18,8 +18,9 @@ The whole pipeline in one command:
 With --dat the spikes are also written as OUT/spikes.dat (SpikeCV layout).
 The sensor profile comes from the scene (camera.profile) unless --profile is given.
 --seed seeds the spike simulation (default 0), --render-seed the render; the same
-scene, options and seeds give bitwise-identical frames and spikes, also after a
-resumed render. Rerunning into OUT resumes the render and rewrites the rest;
+scene, options and seeds give the same frames (to float round-off: at high spp
+Mitsuba's LLVM backend may differ in a pixel's last bit run to run) and, from the
+same frames, bitwise-identical spikes, also after a resumed render. Rerunning into OUT resumes the render and rewrites the rest;
 an OUT made with another scene, model, seed or profile is refused unless --overwrite.
 SCENE is a YAML file or a bundled scene name (rotating_disk, translating_object,
 room_pan, lambertian_plane).

@@ -3,6 +3,8 @@
 The scene has an environment light, so the light-level measurement (the irradiance meter behind
 ``illuminance_lux``) is a Monte Carlo render whose float32 sum used to depend on the thread schedule;
 the tiny scene's meter gave 4 different values in 8 calls before it was made deterministic.
+These renders use 8 and 64 spp; at higher spp (121) the frames themselves were seen to differ run to run
+in a pixel's last bit (Mitsuba's LLVM backend), which the docs state.
 """
 
 import copy
