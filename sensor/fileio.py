@@ -224,6 +224,12 @@ class DirectStream:
                 pass
         self._buf = self._view = None
 
+    def __del__(self):  # dropped without close(): the descriptor is not leaked
+        if getattr(self, "fd", None) is not None:
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+            self.fd = None
+
     def close(self) -> None:
         """Write what is staged and close the file."""
         if self.fd is None:

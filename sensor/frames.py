@@ -553,7 +553,12 @@ class FrameSequence:
                 q += 1
                 continue
             g = min(self.GROUP_FRAMES, j - q)
-            size = len(self._buf)
+            size = len(self._buf)  # the last file read_scaled read: its size, not necessarily the layout's file
+            pos, H, line = hit[5][0], hit[5][1], hit[5][4]
+            if size < pos + 8 * H + (8 + line) * H:  # shorter than the layout: the general way (its own error)
+                self.read_scaled(q, scale, out[q - i])
+                q += 1
+                continue
             if self._group is None or self._group.shape[0] < g or self._group.shape[1] != size:
                 self._group = np.empty((max(g, self.GROUP_FRAMES), size), np.uint8)
             got = _read_files(self._paths, q, g, self._group)  # frames q .. q+got-1 read whole, of that size

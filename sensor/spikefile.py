@@ -581,7 +581,10 @@ class SpikeWriter:
         self.n_spikes = 0
         self.shape = None
         self._zip = self._member = None
+        self._closed = False
         self.expected_intervals = None if expected_intervals is None else int(expected_intervals)
+        if self.expected_intervals is not None and self.expected_intervals < 0:
+            raise ValueError(f"expected_intervals must be >= 0; got {expected_intervals}")
         if self.kind == "dat":
             self._ctx = atomic_path(self.path)
             self._tmp = self._ctx.__enter__()
@@ -665,14 +668,17 @@ class SpikeWriter:
                 self._fh.write(packed_to_dat(bits, *shape))
         elif self._zip is not None:
             if self._member is None:  # the header says the expected length (checked, and if need be fixed, at close)
-                big = (self.expected_intervals + 1) * bits.shape[1] > 1 << 30
-                self._member = self._zip.open("packed.npy", "w", force_zip64=big)
+                # zip64 always: the stream may outgrow the announced length past 2 GiB (20 bytes more)
+                self._member = self._zip.open("packed.npy", "w", force_zip64=True)
                 self._member.write(_npy_header((self.expected_intervals, bits.shape[1])))
             self._member.write(memoryview(np.ascontiguousarray(bits)).cast("B"))  # deflated here
         else:
             self._blocks.append(bits)
 
     def close(self) -> Path:
+        if self._closed:  # a second close (e.g. inside and at the end of a with block) changes nothing
+            return self.path
+        self._closed = True
         self._stop()
         try:
             self._raise_error()
@@ -717,6 +723,9 @@ class SpikeWriter:
         self._member = self._zip = None
 
     def abort(self) -> None:
+        if self._closed and self._ctx is None:  # closed and renamed: nothing left to abort
+            return
+        self._closed = True
         self._stop()
         self._error = None
         if self.kind == "dat" and self._fh is not None:

@@ -289,3 +289,34 @@ def test_a_dat_whose_last_write_fails_leaves_nothing_behind(tmp_path, monkeypatc
     with pytest.raises((OSError, sensor.errors.Render2SpikeError)):
         w.close()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_truncated_frame_the_size_of_a_compressed_one_raises_read_scaled_s_error(folder):
+    """The group width is the size of the last file read: after a compressed (smaller) frame, a truncated frame
+    of exactly that size must still raise what read_scaled raises, not a reshape error (found in review)."""
+    import os
+    p, scale, phi, t, fr = folder
+    seq = sensor.read_frames(fr)
+    f = sensor.read_frame(seq.path(4))
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                       "time_s": np.array(f.time_s, np.float64)}, {"Phi": f.phi, "E": f.illuminance_lux}) as x:
+        x.write(str(seq.path(4)))
+    seq.path(5).write_bytes(seq.path(5).read_bytes()[:os.path.getsize(seq.path(4))])
+    with pytest.raises(sensor.FrameFileError) as one:
+        _one_by_one(fr, scale, 0, 11)
+    with pytest.raises(sensor.FrameFileError) as many:
+        sensor.read_frames(fr).read_scaled_many(0, 11, scale, np.empty((11, 7, 9), np.float32))
+    assert str(many.value) == str(one.value)
+
+
+@pytest.mark.parametrize("suffix", [".dat", ".npz"])
+def test_closing_a_writer_twice_keeps_the_file(tmp_path, suffix):
+    bits = np.random.default_rng(1).random((5, 8, 8)) < 0.3
+    kw = dict(interval_s=50e-6, model="elssim", profile_id="x", seed=0)
+    with SpikeWriter(tmp_path / f"s{suffix}", expected_intervals=5, **kw) as w:
+        w.write(bits)
+        w.close()
+    w.close()
+    np.testing.assert_array_equal(sensor.read_spikes(tmp_path / f"s{suffix}", height=8, width=8), bits)
+    with pytest.raises(ValueError, match="expected_intervals"):
+        SpikeWriter(tmp_path / "n.npz", expected_intervals=-1, **kw)
