@@ -139,7 +139,7 @@ class DirectStream:
     Blocks are staged in a page-aligned buffer that this stream keeps (:meth:`reserve` hands out its free
     part to fill, :meth:`commit` writes out every whole ``align`` bytes and keeps the rest for the next
     block; :meth:`write` does both with a copy); :meth:`close` writes the last partial piece the usual way.
-    Without ``O_DIRECT`` (a file system that refuses it, e.g. tmpfs, an unaligned write refused, other
+    Without ``O_DIRECT`` (a file system that refuses it, e.g. tmpfs before Linux 6.6, an unaligned write refused, other
     platforms, or ``RENDER2SPIKE_DIRECT_IO=0``) the same calls write through the page cache. The bytes
     in the file are the same either way.
     """
