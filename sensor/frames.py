@@ -383,6 +383,11 @@ def _read_files(paths, q: int, n: int, buf) -> int:
     return n
 
 
+def _time_agrees(time_s, manifest_s):
+    """Whether a frame header's ``time_s`` [s] is the manifest's (1 ps + 1 ppb; scalars or arrays; NaN never)."""
+    return np.abs(time_s - manifest_s) <= 1e-12 + 1e-9 * np.abs(manifest_s)
+
+
 def _groupable(hdr) -> bool:
     """Whether frames of the layout ``hdr`` (:func:`_exr_header`) can be read in groups: float32 Phi and a
     double ``time_s``, as :func:`write_frame` writes them."""
@@ -597,7 +602,7 @@ class FrameSequence:
         if self._times is None:
             self._times = self.times_s
         t = self._times[q:q + n]
-        fine = (bad[:n] == 0) & (np.abs(times - t) <= 1e-12 + 1e-9 * np.abs(t))
+        fine = (bad[:n] == 0) & _time_agrees(times, t)
         return n if fine.all() else int(np.argmin(fine))
 
     def _check(self, i: int, time_s: float, shape) -> None:
@@ -605,7 +610,7 @@ class FrameSequence:
             raise FrameFileError(f"frame is {shape[0]}x{shape[1]} but {MANIFEST_NAME} says "
                                  f"{self.shape[0]}x{self.shape[1]}", path=self.path(i))
         t = float(self.manifest["frames"][i]["time_s"])
-        if not abs(time_s - t) <= 1e-12 + 1e-9 * abs(t):
+        if not _time_agrees(time_s, t):
             raise FrameFileError(f"header time_s = {time_s!r} but {MANIFEST_NAME} frames[{i}] says time_s = "
                                  f"{t!r}", path=self.path(i), field="time_s")
 

@@ -30,7 +30,10 @@ INPUT is one of
   * an .npy file holding `rate_e` (T, H, W), one row per interval.
 
 The output is an .npz container (bit-packed spikes + metadata: interval, model,
-profile, seed, source) or a SpikeCV-compatible .dat file.
+profile, seed, source) or a SpikeCV-compatible .dat file. Both are written as the
+blocks come (memory stays flat in duration): the .npz deflated block by block
+(level 1), the .dat around the page cache where the file system allows
+(O_DIRECT; set RENDER2SPIKE_DIRECT_IO=0 to write through the page cache).
 If INPUT is smaller than the profile, the centred window of the profile is used.
 """
 EXAMPLES = """\
