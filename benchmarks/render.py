@@ -104,10 +104,10 @@ def m_overhead(cfg):
             return orig(self, t_s, *a, **k)
         rmod.SceneRenderer.render_frame = wrapped
         try:
-            with tempfile.TemporaryDirectory() as d:
-                t_all = time.perf_counter()
-                res = render_scene(sc, d, progress=False, log=lambda *a: None)
-                t_end, c_end = time.perf_counter(), time.process_time()
+            d = point_dir / f"block{next(block_no)}"
+            t_all = time.perf_counter()
+            res = render_scene(sc, d, progress=False, log=lambda *a: None)
+            t_end, c_end = time.perf_counter(), time.process_time()
         finally:
             rmod.SceneRenderer.render_frame = orig
         CPU["P"].append(c_end - st["c_first"])
@@ -117,29 +117,52 @@ def m_overhead(cfg):
             st["verify"] = (st["rnd"].n_launches - st["launches0"]) // per_frame - len(st["times"])
         return t_end - st["t_first"], st["t_first"] - t_all, res, st
 
-    CPU = {"P": [], "B": []}  # process CPU time (all threads: render, writer) of each block
+    CPU = {"P": [], "B": [], "I": []}  # process CPU time (all threads: render, writer) of each block
 
-    def bare(rnd, times):
-        np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1, spp=spp))  # warm (kernels cached)
+    def bare(rnd, times, call=None, key="B"):
+        """``set_time`` + a render + ``np.asarray`` per frame; ``call(seed)``: the render (default ``mi.render``)."""
+        if call is None:
+            def call(seed):
+                return rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=seed, spp=spp)
+        np.asarray(call(1))  # warm (kernels cached)
         t0, c0 = time.perf_counter(), time.process_time()
         for i, t_s in enumerate(times):
             rnd.set_time(t_s)
-            np.asarray(rnd.mi.render(rnd.mi_scene, sensor=rnd.sensor, seed=1000 + i, spp=spp))
-        CPU["B"].append(time.process_time() - c0)
+            np.asarray(call(1000 + i))
+        CPU[key].append(time.process_time() - c0)
         return time.perf_counter() - t0
 
-    P, B, pairs = [], [], []
+    import itertools
+    block_no = itertools.count()
+    frames_root = Path(cfg["frames_dir"]) if cfg.get("frames_dir") else None
+    if frames_root is not None:
+        frames_root.mkdir(parents=True, exist_ok=True)
+    # every pipeline block of this point renders into its own folder of one temp folder, removed when the
+    # point is done: no folder is deleted between the blocks (on ext4 here, file creation right after a burst of
+    # deletions was seen to cost several times more, which would charge the benchmark's own clean-up to the
+    # pipeline blocks that follow it)
+    holder = tempfile.TemporaryDirectory(dir=frames_root, prefix="r2s-overhead-")
+    point_dir = Path(holder.name)
+    create_ms = _create_cost_ms(point_dir / "probe")
+    P, B, I, pairs = [], [], [], []
     rnd = times = None
-    for _ in range(int(cfg.get("rounds", 2))):
-        p1, setup, res, st = pipeline()
-        if rnd is None:
-            rnd, times, setup_s = st["rnd"], st["times"], setup
-        b1 = bare(rnd, times)
-        b2 = bare(rnd, times)
-        p2, _, _, _ = pipeline()
-        P += [p1, p2]
-        B += [b1, b2]
-        pairs += [p1 / b1, p2 / b2]
+    try:
+        for _ in range(int(cfg.get("rounds", 2))):
+            p1, setup, res, st = pipeline()
+            if rnd is None:
+                rnd, times, setup_s = st["rnd"], st["times"], setup
+            direct = getattr(rnd, "_render_call", None)  # the renderer's own render call (newer code)
+            b1 = bare(rnd, times)
+            if direct is not None:  # the strongest baseline: the render call the pipeline itself makes, bare
+                I.append(bare(rnd, times, lambda seed: direct(seed, spp), "I"))
+                I.append(bare(rnd, times, lambda seed: direct(seed, spp), "I"))
+            b2 = bare(rnd, times)
+            p2, _, _, _ = pipeline()
+            P += [p1, p2]
+            B += [b1, b2]
+            pairs += [p1 / b1, p2 / b2]
+    finally:
+        holder.cleanup()
     pipe, bare_s = float(np.sum(P)), float(np.sum(B))
     n_verify = st["verify"]  # verification launches per pipeline block (as counted in the last block)
     H, W = rnd.height, rnd.width
@@ -155,7 +178,13 @@ def m_overhead(cfg):
             # each) taken out, what is left is the pipeline's own per-frame cost
             "overhead_ratio_without_verification": (pipe - len(P) * n_verify * bare_pf) / bare_s,
             "samples_per_s": H * W * spp * len(times) * len(B) / bare_s, "variant": rnd.variant,
-            "verification_launches": n_verify}
+            "verification_launches": n_verify,
+            # against the bare loop of the render call the pipeline makes (the integrator without mi.render's
+            # differentiable wrapper), in the same rounds: what the pipeline adds to its own renders
+            "overhead_vs_direct": pipe / float(np.sum(I)) if I else None,
+            "direct_s_per_frame": float(np.sum(I)) / (len(I) * len(times)) if I else None,
+            "frames_dir": str(frames_root) if frames_root is not None else tempfile.gettempdir(),
+            "create_ms": create_ms}
 
 
 def m_keyframes(cfg):
@@ -283,6 +312,26 @@ MEASURES = {"overhead": m_overhead, "keyframes": m_keyframes, "noise": m_noise, 
 
 
 # ------------------------------------------------------------------------------------------ driver
+def _create_cost_ms(folder: Path, n: int = 64) -> float:
+    """CPU ms per file to create, write (a 13 kB frame's size) and rename ``n`` files in ``folder`` (made and
+    removed here): what the file system charges for each frame file where the frames are written. On this
+    VM's ext4 it was seen to vary tenfold between folders and over minutes (0.02-0.6 ms)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    data = b"\0" * 13617
+    c0 = time.process_time()
+    for i in range(n):
+        tmp = folder / f".p{i}.part"
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        os.write(fd, data)
+        os.close(fd)
+        os.replace(tmp, folder / f"p{i}.exr")
+    ms = (time.process_time() - c0) / n * 1e3
+    for i in range(n):
+        (folder / f"p{i}.exr").unlink()
+    folder.rmdir()
+    return ms
+
+
 def _run(kind, cfg, tree: Path | None = None):
     env = dict(os.environ)
     env["PYTHONPATH"] = str(tree or ROOT)
@@ -292,6 +341,16 @@ def _run(kind, cfg, tree: Path | None = None):
     if out.returncode != 0:
         raise RuntimeError(f"{kind} {cfg} ({tree or 'this tree'}) failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _where(folder) -> str:
+    """A frames folder's location for the report: relative to the checkout when inside it."""
+    if not folder:
+        return ""
+    try:
+        return str(Path(folder).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(folder)
 
 
 def _dur(s):
@@ -344,19 +403,28 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "before, 1 extra launch per block of up to `VERIFY_EVERY` frames); 'without verification' takes "
               "one bare frame per verification launch made out. 'per block': each pipeline block over its neighbouring bare block. "
               "'median block': the median of those, which one block disturbed by another process moves less. "
-              "'CPU': the same ratio as 'overhead' in process CPU time (all threads), which other processes on "
-              "the machine also disturb less.", "",
+              "'CPU': the same ratio as 'overhead' in process CPU time (all threads); Dr.Jit's worker thread "
+              "busy-waits between kernels, so both cores read as busy in either block and this ratio follows the "
+              "wall-time one. 'vs direct': the pipeline over a bare loop of the render call it makes itself (the "
+              "scene integrator without `mi.render`'s differentiable wrapper, blocks between the two bare ones), the "
+              "strongest baseline: what the pipeline adds to its own renders. 'file create ms': CPU per file to "
+              "create, write 13 kB and rename in the frames folder's file system, probed at the start of the point "
+              "(the pipeline pays it once per frame; the bare loops write nothing). Frames folders: 'frames in' "
+              "(one folder per pipeline block, all removed after the point).", "",
               "| scene | resolution | spp | frames | samples/s | bare s/frame | pipeline s/frame | overhead "
-              "| without verification | median block | CPU | per block | load before-after |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| vs direct | without verification | median block | CPU | file create ms | frames in | per block "
+              "| load before-after |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         head = L[-2:]
 
         def row(r):
             return (f"| {r['scene']} | {r['resolution']} | {r['spp']} | {r['frames']} | {_fmt(r['samples_per_s'])} | "
                     f"{_fmt(r['bare_s_per_frame'], 3)} | {_fmt(r['pipeline_s_per_frame'], 3)} | "
-                    f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
+                    f"{_fmt(r['overhead_ratio'], 3)} | {_fmt(r.get('overhead_vs_direct'), 3)} | "
+                    f"{_fmt(r.get('overhead_ratio_without_verification'), 3)} | "
                     f"{_fmt(float(np.median(r['overhead_ratio_blocks'])) if r.get('overhead_ratio_blocks') else None, 3)} | "
-                    f"{_fmt(r.get('cpu_overhead_ratio'), 3)} | "
+                    f"{_fmt(r.get('cpu_overhead_ratio'), 3)} | {_fmt(r.get('create_ms'), 3)} | "
+                    f"{_where(r.get('frames_dir'))} | "
                     + ", ".join(_fmt(x, 3) for x in r.get("overhead_ratio_blocks", [])) + " | "
                     + (f"{r['load_before'][0]:.1f}-{r['load_after'][0]:.1f}" if r.get("load_before") else "") + " |")
         L += [row(r) for r in res["overhead"]] + [""]
@@ -414,8 +482,15 @@ def goal_lines(res) -> list[str]:
         worst = {}
         for r in rows:
             worst[r["resolution"]] = max(worst.get(r["resolution"], 0.0), r["overhead_ratio"])
+        where = sorted({_where(r.get("frames_dir")) or "the system temp folder" for r in rows})
+        creates = [r["create_ms"] for r in rows if r.get("create_ms") is not None]
+        direct = [r["overhead_vs_direct"] for r in rows if r.get("overhead_vs_direct")]
         out.append(f"- pipeline overhead <= 1.1x a bare `mi.render` at every size: {say(max(worst.values()) <= 1.1)} "
-                   "(largest per resolution: " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items()) + ")")
+                   "(largest per resolution: " + ", ".join(f"{k} {v:.2f}x" for k, v in worst.items())
+                   + f"; frames written in {', '.join(where)}"
+                   + (f", file creation {min(creates):.3f}-{max(creates):.3f} ms" if creates else "")
+                   + (f"; against the bare loop of the pipeline's own render call: {min(direct):.2f}-"
+                      f"{max(direct):.2f}x" if direct else "") + ")")
     if res.get("wait_speedup"):
         r50 = {str(k): v for k, v in res["wait_speedup"].items()}.get("50") or \
             {str(k): v for k, v in res["wait_speedup"].items()}.get("50.0")
@@ -437,6 +512,10 @@ def main(argv=None):
     ap.add_argument("--sizes", nargs="+", default=["window", "full"], choices=["window", "full"],
                     help="overhead at the scene's window and/or the full sensor (default both)")
     ap.add_argument("--rounds", type=int, default=2, help="P B B P rounds per overhead point (default 2)")
+    ap.add_argument("--frames-dir", default=str(HERE / ".scratch"), metavar="DIR",
+                    help="where the overhead section's pipeline writes its frames folders (default: "
+                         "benchmarks/.scratch, under the working tree, as `render2spike render --out out/...` does; "
+                         "pass /tmp to measure there: the report gives each point's file-creation cost)")
     ap.add_argument("--full-spp", type=int, default=4, help="spp of the full-resolution overhead runs (default 4)")
     ap.add_argument("--clip", type=float, default=0.02, help="camera seconds of the keyframe runs (default 0.02)")
     ap.add_argument("--kf-spp", default="auto", help="spp of the keyframe runs (default: auto, each version's budget)")
@@ -515,12 +594,14 @@ def main(argv=None):
                     if key == "overhead_old" and "overhead" not in old_for:
                         continue
                     lb = now_load()
-                    r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets, "rounds": a.rounds},
-                             tree)
+                    r = _run("overhead", {"scene": sc, "spp": spp, "frames": n, "sets": sets, "rounds": a.rounds,
+                                          "frames_dir": str(Path(a.frames_dir).resolve())}, tree)
                     r.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), load_before=lb, load_after=now_load())
                     res[key].append(r)
                     say(f"{key} {sc} {r['resolution']}: {r['samples_per_s']:.3g} samples/s, pipeline/bare "
-                        f"{r['overhead_ratio']:.3f}")
+                        f"{r['overhead_ratio']:.3f}" + (f", pipeline/direct {r['overhead_vs_direct']:.3f}"
+                                                        if r.get("overhead_vs_direct") else "")
+                        + f", file create {r['create_ms']:.3f} ms")
         mark("overhead", l0)
         for key in ("overhead", "overhead_old"):
             if prev.get(key) and key in res:  # --merge: rows (scene, resolution) not measured now are kept

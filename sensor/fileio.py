@@ -69,7 +69,7 @@ def atomic_path(path, suffix: str | None = None):
 
 
 @contextlib.contextmanager
-def _renamed_on_success(tmp: Path, path: Path):
+def _renamed_on_success(tmp, path):
     """Rename the registered temp file ``tmp`` onto ``path`` when the body succeeds; else remove it (a full
     disk raised as DiskFullError naming ``path``); either way unregister it."""
     try:
@@ -77,7 +77,7 @@ def _renamed_on_success(tmp: Path, path: Path):
         os.replace(tmp, path)
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+            os.unlink(tmp)
         if is_disk_full(exc):
             from .errors import DiskFullError
             raise DiskFullError(f"disk full while writing {path}", path=path) from exc
@@ -98,13 +98,16 @@ def write_bytes_atomic(path, data) -> Path:
     applied by the kernel at creation), the same :class:`~sensor.errors.DiskFullError` naming ``path``,
     and nothing left at ``path`` or beside it on failure; but one ``open`` with ``O_EXCL`` on a name
     numbered by a per-process counter instead of ``mkstemp``, ``close``, ``chmod`` and a second ``open``
-    (~0.03 instead of ~0.15 ms per file on ext4).
+    (~0.03 instead of ~0.15 ms per file on ext4), and the names built as strings (``pathlib`` cost about
+    25 us a file, a quarter of a small frame's whole write).
     """
-    path = Path(path)
-    prefix = f".{path.stem}.part-{os.getpid()}-"
+    spath = os.fspath(path)
+    folder, name = os.path.split(spath)
+    stem, ext = os.path.splitext(name)
+    prefix = os.path.join(folder, f".{stem}.part-{os.getpid()}-")
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     while True:
-        tmp = path.parent / f"{prefix}{next(_TMP_NUMBERS)}{path.suffix}"
+        tmp = f"{prefix}{next(_TMP_NUMBERS)}{ext}"
         _LIVE_TEMPS.add(tmp)  # before the file exists: a signal may land right after its creation
         try:
             fd = os.open(tmp, flags, 0o666)
@@ -113,18 +116,18 @@ def write_bytes_atomic(path, data) -> Path:
             _LIVE_TEMPS.discard(tmp)
         except FileNotFoundError:
             _LIVE_TEMPS.discard(tmp)
-            path.parent.mkdir(parents=True, exist_ok=True)
+            Path(folder or ".").mkdir(parents=True, exist_ok=True)
         except BaseException:
             _LIVE_TEMPS.discard(tmp)
             raise
-    with _renamed_on_success(tmp, path):
+    with _renamed_on_success(tmp, spath):
         try:
             view = memoryview(data).cast("B")
             while view:  # os.write may write less than asked
                 view = view[os.write(fd, view):]
         finally:
             os.close(fd)
-    return path
+    return Path(path)
 
 
 class DirectStream:

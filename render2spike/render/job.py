@@ -366,8 +366,10 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                  "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
         state["frames"][key] = {"file": name, "time_s": t_s, "render_noise_ratio": float(ratio)}
-        # written in the background while the next frame renders; its journal line follows the file
-        writer.submit(out / name, f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=t_s,
+        # written in the background while the next frame renders; its journal line follows the file. The
+        # float64 arrays are handed over as they are (nothing here changes them later): the writer thread
+        # rounds them to the file's float32, off the render loop
+        writer.submit(out / name, f["phi"], f["lux"], time_s=t_s,
                       attrs=attrs, record={"tick": int(tick), **state["frames"][key]})
         n_rendered += 1
         advance(tick)

@@ -50,6 +50,20 @@ def test_frame_with_verification_is_the_frame_without_and_both_launches_precede_
 
 
 @needs_mitsuba
+def test_the_render_call_is_bitwise_mi_render_for_the_same_seed_and_spp(write_scene):
+    # the renderer calls the integrator without mi.render's differentiable wrapper: the same film, moving scene,
+    # two times, two seeds, a split spp's part (1) and a stratified count
+    r = _renderer(write_scene, MOVING)
+    for t_s, seed, spp in ((0.0, 7, 16), (0.013, 123456789, 16), (0.013, 5, 1), (0.02, 42, 64)):
+        r.set_time(t_s)
+        ours = np.asarray(r._render_call(seed, spp))
+        ref = np.asarray(r.mi.render(r.mi_scene, sensor=r.sensor, seed=seed, spp=spp))
+        assert ours.shape == ref.shape and ours.dtype == ref.dtype
+        assert np.array_equal(ours, ref), (t_s, seed, spp)
+        assert ours.mean() > 0
+
+
+@needs_mitsuba
 def test_a_kept_pilot_render_is_the_first_verified_frames_second_render(write_scene):
     from render2spike.render.photometry import to_physical
     r = _renderer(write_scene)

@@ -70,12 +70,12 @@ def test_frames_take_exactly_the_asked_samples_in_one_launch(write_scene, monkey
         assert sum(counts) == spp and all(r.effective_spp(n) == n for n in counts)
     assert r.launch_counts(64) == [64]
     calls = []
-    orig = r.mi.render
+    orig = r._render_call
 
-    def counting(*a, **k):
-        calls.append(k["spp"])
-        return orig(*a, **k)
-    monkeypatch.setattr(r.mi, "render", counting)
+    def counting(seed, spp):
+        calls.append(spp)
+        return orig(seed, spp)
+    monkeypatch.setattr(r, "_render_call", counting)
     f = r.render_frame(0.0, 0, 64, variance=False)
     assert calls == [64] and f["phi_var"] is None and f["spp"] == 64
     calls.clear()
