@@ -603,6 +603,8 @@ def main(argv=None):
                                                         if r.get("overhead_vs_direct") else "")
                         + f", file create {r['create_ms']:.3f} ms")
         mark("overhead", l0)
+        if "overhead" not in old_for:  # old-code rows of an earlier run were measured beside that run's rows,
+            prev.pop("overhead_old", None)  # not beside these: dropped rather than shown as a comparison
         for key in ("overhead", "overhead_old"):
             if prev.get(key) and key in res:  # --merge: rows (scene, resolution) not measured now are kept
                 have = {(r["scene"], r["resolution"]) for r in res[key]}
