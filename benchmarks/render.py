@@ -22,7 +22,12 @@ Sections
    metric) per frame against a bare ``mi.render`` + ``np.asarray`` of the same
    loaded scene at the same times and spp, in blocks ordered pipeline, bare,
    bare, pipeline (a linearly drifting load cancels; JIT compilation is in
-   neither). Samples/s = pixels x spp / bare seconds.
+   neither). Samples/s = pixels x spp / bare seconds. Between the two bare
+   blocks, two blocks of the renderer's own render call (the integrator without
+   ``mi.render``'s differentiable wrapper): 'vs direct', the strongest baseline.
+   The pipeline writes its frames under ``--frames-dir`` (default
+   ``benchmarks/.scratch``); each point first probes the file system's cost of
+   creating a frame-sized file there, reported beside the row.
 2. **Keyframes per camera-second** (per scene at its window, 1 and 50 lux; also
    5 lux on the rotating disk;
    each version's budget spp with the scene's own ``max_spp``, the scene's own
@@ -407,7 +412,8 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "busy-waits between kernels, so both cores read as busy in either block and this ratio follows the "
               "wall-time one. 'vs direct': the pipeline over a bare loop of the render call it makes itself (the "
               "scene integrator without `mi.render`'s differentiable wrapper, blocks between the two bare ones), the "
-              "strongest baseline: what the pipeline adds to its own renders. 'file create ms': CPU per file to "
+              "strongest baseline: what the pipeline adds to its own renders (verification launches included, as "
+              "in 'overhead'). 'file create ms': CPU per file to "
               "create, write 13 kB and rename in the frames folder's file system, probed at the start of the point "
               "(the pipeline pays it once per frame; the bare loops write nothing). Frames folders: 'frames in' "
               "(one folder per pipeline block, all removed after the point).", "",

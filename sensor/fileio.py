@@ -102,6 +102,7 @@ def write_bytes_atomic(path, data) -> Path:
     25 us a file, a quarter of a small frame's whole write).
     """
     spath = os.fspath(path)
+    spath = spath.rstrip(os.sep) or spath  # "out/f.exr/" names the file out/f.exr (as Path() reads it)
     folder, name = os.path.split(spath)
     stem, ext = os.path.splitext(name)
     prefix = os.path.join(folder, f".{stem}.part-{os.getpid()}-")
@@ -117,9 +118,11 @@ def write_bytes_atomic(path, data) -> Path:
         except FileNotFoundError:
             _LIVE_TEMPS.discard(tmp)
             Path(folder or ".").mkdir(parents=True, exist_ok=True)
-        except BaseException:
+        except OSError:  # the open failed: no file was made
             _LIVE_TEMPS.discard(tmp)
             raise
+        # anything else (a signal's exception, e.g. KeyboardInterrupt, right after the file was made) leaves
+        # the name registered, so remove_live_temps still finds the file
     with _renamed_on_success(tmp, spath):
         try:
             view = memoryview(data).cast("B")

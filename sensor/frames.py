@@ -181,7 +181,7 @@ def _encode_exr(channels: dict, header: dict):
 # frame's write otherwise). The bytes are exactly those built directly (tested).
 _EXR_PREAMBLE = {flag: (20000630).to_bytes(4, "little") + (2 | (0x400 if flag else 0)).to_bytes(4, "little")
                  for flag in (False, True)}
-_ATTR_CHUNKS: dict = {}  # (name, kind, value) -> encoded attribute (or None), for ints and strings
+_ATTR_CHUNKS: dict = {}  # (name, kind, type, value) -> encoded attribute (or None), ints and short strings
 _ATTR_CHUNKS_MAX = 4096
 
 
@@ -218,8 +218,10 @@ def _exr_attr_chunk(key, kind: str, value):
             return None
         return _chunk(name, b"double", struct.pack("<d", value))
     try:
-        cache_key = (key, kind, value)
-        hit = _ATTR_CHUNKS.get(cache_key, _MISSING)
+        # the value's type is part of the key (1.0 == 1 and -0.0 == 0 must not share an int's bytes); long
+        # strings are not kept (the cache would hold them and their bytes; a render's varying strings are short)
+        cache_key = (key, kind, type(value), value) if not (isinstance(value, str) and len(value) > 256) else None
+        hit = _ATTR_CHUNKS.get(cache_key, _MISSING) if cache_key is not None else _MISSING
     except TypeError:  # an unhashable value: encoded without the cache
         cache_key, hit = None, _MISSING
     if hit is not _MISSING:

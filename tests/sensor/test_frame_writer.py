@@ -175,3 +175,38 @@ def test_the_encoders_reused_header_pieces_give_each_frame_its_own_bytes(tmp_pat
     ch = {"E": np.zeros((2, 2), np.float32), "Phi": np.ones((2, 2), np.float32)}
     assert F._encode_exr(ch, header) is None and F._encode_exr(ch, header) is None
     assert F._encode_exr(ch, {"big": ("int", 2 ** 40)}) is None and F._encode_exr(ch, {"big": ("int", 2 ** 40)}) is None
+    # the cache keys on the value's type: an int's bytes are never handed to an equal float (1.0 == 1)
+    assert F._exr_attr_chunk("n", "int", 1) is not None
+    with pytest.raises(Exception):
+        F._exr_attr_chunk("n", "int", 1.0)  # struct refuses a float for an int, as it did before the cache
+    # long strings are encoded every time, not kept
+    F._encode_exr(ch, {"note": ("string", "y" * 5000)})
+    assert not any(isinstance(k[3], str) and len(k[3]) > 256 for k in F._ATTR_CHUNKS)
+
+
+def test_write_bytes_atomic_takes_a_trailing_separator_as_pathlib_does(tmp_path):
+    import os
+
+    from sensor import fileio
+    out = fileio.write_bytes_atomic(str(tmp_path / "f.exr") + os.sep, b"abc")
+    assert out == tmp_path / "f.exr" and (tmp_path / "f.exr").read_bytes() == b"abc"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.exr"] and not fileio._LIVE_TEMPS
+
+
+def test_write_bytes_atomic_interrupted_right_after_creating_the_temp_file_leaves_it_findable(tmp_path, monkeypatch):
+    import os
+
+    from sensor import fileio
+    real_open = os.open
+
+    def open_then_interrupt(*a, **k):
+        fd = real_open(*a, **k)
+        os.close(fd)
+        raise KeyboardInterrupt  # a signal's exception lands after the file was made
+    monkeypatch.setattr(fileio.os, "open", open_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        fileio.write_bytes_atomic(tmp_path / "f.exr", b"abc")
+    monkeypatch.undo()
+    left = list(tmp_path.iterdir())
+    assert len(left) == 1 and left[0].name.startswith(".f.part-")
+    assert fileio.remove_live_temps() == [left[0]] and not list(tmp_path.iterdir())
