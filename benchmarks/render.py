@@ -143,9 +143,9 @@ def m_overhead(cfg):
     if frames_root is not None:
         frames_root.mkdir(parents=True, exist_ok=True)
     # every pipeline block of this point renders into its own folder of one temp folder, removed when the
-    # point is done: no folder is deleted between the blocks (on ext4 here, file creation right after a burst of
-    # deletions was seen to cost several times more, which would charge the benchmark's own clean-up to the
-    # pipeline blocks that follow it)
+    # point is done: no folder is deleted between the blocks (file creation on this VM's ext4 varies with the
+    # recent file churn, 0.02-0.6 ms a file; deleting between blocks would add the benchmark's own churn to the
+    # pipeline blocks that follow)
     holder = tempfile.TemporaryDirectory(dir=frames_root, prefix="r2s-overhead-")
     point_dir = Path(holder.name)
     create_ms = _create_cost_ms(point_dir / "probe")

@@ -162,7 +162,7 @@ def _encode_exr(channels: dict, header: dict):
             return None
         chunks[key.encode()] = chunk
     long_names = max(map(len, chunks)) > 31
-    head = b"".join([_EXR_PREAMBLE[long_names], *(chunks[n] for n in sorted(chunks)), b"\0"])
+    head = b"".join([_exr_preamble(long_names), *(chunks[n] for n in sorted(chunks)), b"\0"])
     first = len(head) + 8 * H
     row, offsets, ys = _exr_layout(H, W, len(names), first)
     buf = np.empty(first + row.itemsize * H, np.uint8)
@@ -179,8 +179,13 @@ def _encode_exr(channels: dict, header: dict):
 # Encoded pieces of an EXR header, built once per (layout, attribute value) and reused: a render writes
 # thousands of frames whose headers differ only in their time and a few numbers (about 25 us of a small
 # frame's write otherwise). The bytes are exactly those built directly (tested).
-_EXR_PREAMBLE = {flag: (20000630).to_bytes(4, "little") + (2 | (0x400 if flag else 0)).to_bytes(4, "little")
-                 for flag in (False, True)}
+
+
+@functools.lru_cache(maxsize=2)
+def _exr_preamble(long_names: bool) -> bytes:
+    """Magic number and version field (2: single-part scanline; 0x400: attribute names over 31 bytes)."""
+    return _EXR_MAGIC.to_bytes(4, "little") + (2 | (0x400 if long_names else 0)).to_bytes(4, "little")
+
 _ATTR_CHUNKS: dict = {}  # (name, kind, type, value) -> encoded attribute (or None), ints and short strings
 _ATTR_CHUNKS_MAX = 4096
 
