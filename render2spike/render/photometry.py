@@ -100,7 +100,12 @@ def physical_factors(k: float, f_number: float, transmission: float, cos4) -> tu
 
 def to_physical(raw_phi, raw_e, k: float, f_number: float, transmission: float, cos4):
     """Raw film channels -> (Phi [e-/(s m^2)], E [lux]) at the focal plane, float64 (H, W)."""
-    fp, fe = physical_factors(k, f_number, transmission, cos4)
+    return apply_factors(raw_phi, raw_e, physical_factors(k, f_number, transmission, cos4))
+
+
+def apply_factors(raw_phi, raw_e, factors) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`to_physical` with its factors (from :func:`physical_factors`) made beforehand, e.g. once per renderer."""
+    fp, fe = factors
     return np.asarray(raw_phi, np.float64) * fp, np.asarray(raw_e, np.float64) * fe
 
 

@@ -27,7 +27,8 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, build_dict, to_transform
-from .photometry import cos4_map, direct_raw_e, emitter_scale, physical_factors, warn_if_reference_shadowed
+from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
+                         warn_if_reference_shadowed)
 from .scene import Scene, spectrum_curve
 
 
@@ -268,8 +269,8 @@ class SceneRenderer:
         reused = self._reused_render(t_s, spp, sa) if variance else None
         launched_b = self._launch_exact(t_s, sb, spp) if variance and reused is None else None
         raw_p, raw_e = self._finish_exact(launched_a, spp)
-        fp, fe = self._factors  # to_physical's product, with its factors made once
-        phi, lux = raw_p * fp, raw_e * fe
+        phi, lux = apply_factors(raw_p, raw_e, self._factors)  # to_physical, its factors made once
+        fp = self._factors[0]
         out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": list(sa), "spp": int(spp), "phi_var": None}
         if variance:
             if reused is not None:
