@@ -22,7 +22,11 @@ not zero; the slow path that finds the first bad value runs only then.
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
+
+_LITTLE = sys.byteorder == "little"  # EXR is little-endian
 
 try:  # pragma: no cover - exercised by the environment
     from numba import njit
@@ -79,19 +83,32 @@ if HAVE_NUMBA:
         return _scale_checked_2d(src, scale, out)
 
 
-def exr_group_scale_checked(table, heads, src, first: int, stride: int, y0: int, line: int, scale: float, out,
+def exr_group_scale_checked(buf, pos: int, H: int, W: int, y0: int, line: int, offset: int, scale: float, out,
                             bad) -> int:
-    """:func:`exr_scale_checked` over a group of n frames of one layout in one compiled call: ``table``
-    uint64 (n, H), ``heads`` int32 (n, H, 2), ``src`` float32 (n, H, W), ``out`` float32 (n, H, W) and
-    ``bad`` int64 (n,) (each frame's count of non-finite or negative values). Frames are done in order;
-    returns the index of the first whose layout does not hold (nothing of it written), or n."""
-    n = table.shape[0]
-    if src.shape != out.shape or out.dtype != np.float32 or bad.shape != (n,):
-        raise ValueError(f"out must be float32 {src.shape} and bad ({n},); got {out.dtype} {out.shape}, {bad.shape}")
-    if HAVE_NUMBA:
-        return int(_exr_group_scale_checked(table, heads, src, first, stride, y0, line, float(scale), out, bad))
+    """:func:`exr_scale_checked` over a group of n frames of one layout in one compiled call, straight from
+    the files' bytes: ``buf`` uint8 (n, size) C-contiguous, one whole file per row, laid out as
+    :func:`sensor.frames._exr_header` describes (offset table of H uint64 at byte ``pos``, then H
+    scanlines of ``8 + line`` bytes, each ``y`` (int32) = ``y0 + r``, data size (int32) = ``line`` and the
+    channel's W float32 at byte ``offset`` of the data); ``out`` float32 (n, H, W) and ``bad`` int64 (n,)
+    (each frame's count of non-finite or negative values). Frames are done in order; returns the index of
+    the first whose layout does not hold (nothing of it written), or n.
+
+    Each scanline's channel is handed to the compiled loop as a contiguous row of the bytes, so the loop
+    is vectorised (about 3x faster than over a strided (H, W) view of the same bytes, which the compiler
+    must treat as of unknown stride)."""
+    n = buf.shape[0]
+    stride, first = 8 + line, pos + 8 * H
+    if buf.ndim != 2 or buf.dtype != np.uint8 or not buf.flags.c_contiguous or buf.shape[1] < first + stride * H:
+        raise ValueError(f"buf must be C-contiguous uint8 (n, >= {first + stride * H}); got {buf.dtype} {buf.shape}")
+    if out.shape != (n, H, W) or out.dtype != np.float32 or bad.shape != (n,):
+        raise ValueError(f"out must be float32 {(n, H, W)} and bad ({n},); got {out.dtype} {out.shape}, {bad.shape}")
+    if HAVE_NUMBA and _LITTLE and out.flags.c_contiguous:  # the compiled loop reads the bytes as native numbers
+        return int(_exr_group_bytes(buf, pos, H, W, y0, line, offset, float(scale), out, bad))
     for k in range(n):
-        b = exr_scale_checked(table[k], heads[k], src[k], first, stride, y0, line, scale, out[k])
+        table = buf[k, pos:first].view("<u8")
+        rows = buf[k, first:first + stride * H].reshape(H, stride)
+        src = rows[:, 8 + offset:8 + offset + 4 * W].view("<f4")
+        b = exr_scale_checked(table, rows[:, :8].view("<i4"), src, first, stride, y0, line, scale, out[k])
         if b < 0:
             return k
         bad[k] = b
@@ -100,14 +117,33 @@ def exr_group_scale_checked(table, heads, src, first: int, stride: int, y0: int,
 
 if HAVE_NUMBA:
     @njit(nogil=True, cache=True)
-    def _exr_group_scale_checked(table, heads, src, first, stride, y0, line, scale, out,
-                                 bad):  # pragma: no cover - compiled
-        for k in range(table.shape[0]):
-            b = _exr_scale_checked(table[k], heads[k], src[k], first, stride, y0, line, scale, out[k])
-            if b < 0:
-                return k
-            bad[k] = b
-        return table.shape[0]
+    def _scale_checked_row(src, scale, out):  # pragma: no cover - compiled
+        # branch-free, so that the loop over a contiguous row vectorises
+        bad = 0
+        for c in range(src.shape[0]):
+            v = src[c]
+            bad += np.int64((v >= 0) & (v <= _FMAX)) ^ 1
+            out[c] = np.float32(np.float64(v) * scale)
+        return bad
+
+    @njit(nogil=True, cache=True)
+    def _exr_group_bytes(buf, pos, H, W, y0, line, offset, scale, out, bad):  # pragma: no cover - compiled
+        stride = 8 + line
+        first = pos + 8 * H
+        for k in range(buf.shape[0]):
+            row = buf[k]
+            table = row[pos:first].view(np.uint64)
+            for r in range(H):
+                a = first + stride * r
+                head = row[a:a + 8].view(np.int32)
+                if np.int64(table[r]) != a or head[0] != y0 + r or head[1] != line:
+                    return k
+            nb = 0
+            for r in range(H):
+                a = first + stride * r + 8 + offset
+                nb += _scale_checked_row(row[a:a + 4 * W].view(np.float32), scale, out[k, r])
+            bad[k] = nb
+        return buf.shape[0]
 
 
 def scale_checked(src, scale: float, out) -> int:

@@ -650,13 +650,8 @@ class FrameSequence:
             return 0
         pos, H, W, y0, line, offset, dtype, tattr = hdr
         buf = buf[:n]
-        stride, first = 8 + line, pos + 8 * H
-        rows = buf[:, first:first + stride * H].reshape(n, H, stride)
-        table = buf[:, pos:first].view("<u8")
-        heads = rows[:, :, :8].view("<i4")
-        phi = rows[:, :, 8 + offset:8 + offset + 4 * W].view("<f4")
         bad = np.zeros(n, np.int64)
-        n = exr_group_scale_checked(table, heads, phi, first, stride, y0, line, scale, out[:n], bad)
+        n = exr_group_scale_checked(buf, pos, H, W, y0, line, offset, scale, out[:n], bad)
         if n == 0:
             return 0
         times = np.ascontiguousarray(buf[:n, tattr[1]:tattr[1] + 8]).view("<f8")[:, 0]

@@ -157,6 +157,39 @@ def test_a_damaged_frame_in_a_group_raises_what_read_scaled_raises(folder, damag
     np.testing.assert_array_equal(seq.read_scaled_many(0, 11, scale, np.empty((11, 7, 9), np.float32)), want)
 
 
+def test_the_compiled_group_pass_is_the_numpy_one(folder, monkeypatch):
+    """exr_group_scale_checked over the files' bytes: compiled (each scanline's channel a contiguous row) and
+    numpy (strided views) give the same values, bad-value counts and refusal, bit for bit."""
+    from sensor import fastio
+    from sensor.frames import _exr_header
+    p, scale, phi, t, fr = folder
+    seq = sensor.read_frames(fr)
+    files = [bytearray(seq.path(q).read_bytes()) for q in range(6)]
+    hdr = _exr_header(files[0], "Phi")
+    pos, H, W, y0, line, offset = hdr[:6]
+    bad_phi = phi[1].copy()
+    bad_phi[0, 0], bad_phi[3, 4], bad_phi[6, 8] = np.nan, -2.0, np.inf
+    sensor.write_frame(seq.path(1), bad_phi, time_s=t[1])
+    files[1] = bytearray(seq.path(1).read_bytes())
+    struct.pack_into("<i", files[4], pos + 8 * H + 5 * (8 + line), 99)  # frame 4: scanline 5 says y = 99
+    buf = np.stack([np.frombuffer(f, np.uint8) for f in files])
+    results = []
+    for compiled in (True, False):
+        monkeypatch.setattr(fastio, "HAVE_NUMBA", compiled and fastio.HAVE_NUMBA)
+        out = np.full((6, H, W), -7.0, np.float32)
+        bad = np.full(6, -1, np.int64)
+        n = fastio.exr_group_scale_checked(buf, pos, H, W, y0, line, offset, scale, out, bad)
+        results.append((n, out, bad))
+    (n1, out1, bad1), (n2, out2, bad2) = results
+    assert n1 == n2 == 4  # refused at the damaged frame; nothing of it written
+    np.testing.assert_array_equal(bad1, bad2)
+    assert list(bad1[:4]) == [0, 3, 0, 0]
+    np.testing.assert_array_equal(out1.view(np.uint32), out2.view(np.uint32))
+    assert (out1[4:] == -7.0).all()
+    want = sensor.photoelectron_rate(phi[[0, 2, 3]], p)
+    np.testing.assert_array_equal(out1[[0, 2, 3]], want)
+
+
 def test_cli_from_frames_in_groups_gives_the_python_api_spikes(folder, tmp_path):
     p, scale, phi, t, fr = folder
     from render2spike.cli import main
