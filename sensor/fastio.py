@@ -97,6 +97,10 @@ def exr_group_scale_checked(buf, pos: int, H: int, W: int, y0: int, line: int, o
     is vectorised (about 3x faster than over a strided (H, W) view of the same bytes, which the compiler
     must treat as of unknown stride)."""
     n = buf.shape[0]
+    pos, H, W, y0, line, offset = int(pos), int(H), int(W), int(y0), int(line), int(offset)
+    if pos < 0 or H < 1 or W < 1 or offset < 0 or offset + 4 * W > line:
+        raise ValueError(f"not a layout: pos={pos}, H={H}, W={W}, line={line}, offset={offset} (need pos >= 0, "
+                         "H, W >= 1 and the channel's 4*W bytes at offset inside the line)")
     stride, first = 8 + line, pos + 8 * H
     if buf.ndim != 2 or buf.dtype != np.uint8 or not buf.flags.c_contiguous or buf.shape[1] < first + stride * H:
         raise ValueError(f"buf must be C-contiguous uint8 (n, >= {first + stride * H}); got {buf.dtype} {buf.shape}")

@@ -190,6 +190,19 @@ def test_the_compiled_group_pass_is_the_numpy_one(folder, monkeypatch):
     np.testing.assert_array_equal(out1[[0, 2, 3]], want)
 
 
+@pytest.mark.parametrize("bad", [dict(offset=4 * 9 + 8), dict(offset=-4), dict(pos=-8), dict(W=0), dict(H=0),
+                                 dict(line=4 * 9 - 4, offset=0)])
+def test_the_group_pass_refuses_a_layout_whose_channel_leaves_its_scanline(bad):
+    """The compiled pass trusts the layout (no bounds checks inside): the wrapper refuses one that is not."""
+    from sensor.fastio import exr_group_scale_checked
+    lay = dict(pos=0, H=2, W=9, y0=0, line=2 * 9 * 4, offset=9 * 4)
+    lay.update(bad)
+    buf = np.zeros((1, 4096), np.uint8)
+    with pytest.raises(ValueError, match="not a layout"):
+        exr_group_scale_checked(buf, lay["pos"], lay["H"], lay["W"], lay["y0"], lay["line"], lay["offset"], 1.0,
+                                np.zeros((1, max(lay["H"], 0), max(lay["W"], 0)), np.float32), np.zeros(1, np.int64))
+
+
 def test_cli_from_frames_in_groups_gives_the_python_api_spikes(folder, tmp_path):
     p, scale, phi, t, fr = folder
     from render2spike.cli import main
