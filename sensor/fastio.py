@@ -38,15 +38,22 @@ if HAVE_NUMBA:
     _FMAX = np.float32(np.finfo(np.float32).max)
 
     @njit(nogil=True, cache=True)
-    def _scale_checked_2d(src, scale, out):  # pragma: no cover - compiled
-        H, W = src.shape
+    def _scale_checked_row(src, scale, out):  # pragma: no cover - compiled
+        """One row: ``out = float32(float64(src) * scale)``; how many ``src`` values are non-finite or < 0.
+        Branch-free, so that the loop vectorises when the row is contiguous."""
         bad = 0
-        for r in range(H):
-            for c in range(W):
-                v = src[r, c]
-                # NaN fails both comparisons; +inf fails the second, negatives the first
-                bad += 0 if (v >= 0 and v <= _FMAX) else 1
-                out[r, c] = np.float32(np.float64(v) * scale)
+        for c in range(src.shape[0]):
+            v = src[c]
+            # NaN fails both comparisons; +inf fails the second, negatives the first
+            bad += np.int64((v >= 0) & (v <= _FMAX)) ^ 1
+            out[c] = np.float32(np.float64(v) * scale)
+        return bad
+
+    @njit(nogil=True, cache=True)
+    def _scale_checked_2d(src, scale, out):  # pragma: no cover - compiled
+        bad = 0
+        for r in range(src.shape[0]):
+            bad += _scale_checked_row(src[r], scale, out[r])
         return bad
 
     @njit(nogil=True, cache=True)
@@ -120,16 +127,6 @@ def exr_group_scale_checked(buf, pos: int, H: int, W: int, y0: int, line: int, o
 
 
 if HAVE_NUMBA:
-    @njit(nogil=True, cache=True)
-    def _scale_checked_row(src, scale, out):  # pragma: no cover - compiled
-        # branch-free, so that the loop over a contiguous row vectorises
-        bad = 0
-        for c in range(src.shape[0]):
-            v = src[c]
-            bad += np.int64((v >= 0) & (v <= _FMAX)) ^ 1
-            out[c] = np.float32(np.float64(v) * scale)
-        return bad
-
     @njit(nogil=True, cache=True)
     def _exr_group_bytes(buf, pos, H, W, y0, line, offset, scale, out, bad):  # pragma: no cover - compiled
         stride = 8 + line
