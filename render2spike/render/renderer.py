@@ -311,17 +311,37 @@ class SceneRenderer:
         hit = self.mi_scene.ray_test(ray)
         return not bool(np.asarray(hit).reshape(-1)[0])
 
+    def _meter_mean(self, meter_scene, meter_sensor, seed: int, n: int) -> float:
+        """Mean of ``n`` irradiance-meter samples (raw V-weighted illuminance), summed on the host.
+
+        What ``mi.render`` of the meter computes (the meter's ray and wavelengths, the path integrator,
+        the single-channel V(lambda) film: a sample's value is the mean over its wavelengths of ray
+        weight x radiance; the 1 x 1 box-filtered film divides by the sample count), but each sample's
+        value is brought to the host and the sum is a float64 ``numpy`` sum in sample order: the same
+        bits on every run, thread count and back end (CPU or GPU).
+        """
+        sampler = meter_sensor.sampler().clone()
+        sampler.seed(seed, n)
+        wav_u = sampler.next_1d()
+        pos_u = sampler.next_2d()
+        ap_u = sampler.next_2d()
+        with self._dr.suspend_grad():
+            ray, weight = meter_sensor.sample_ray_differential(0.0, wav_u, pos_u, ap_u)
+            radiance, valid, _ = meter_scene.integrator().sample(meter_scene, sampler, ray)
+            value = self._dr.select(valid, weight * radiance, 0.0)
+        v = np.asarray(value, dtype=np.float64).reshape(-1, n)  # (wavelengths, samples): Dr.Jit's layout
+        return float(v.mean(axis=0).sum() / n)
+
     def measure_reference(self) -> dict:
         """Raw illuminance (V-weighted) at the reference at t = 0: analytic delta lights + irradiance meter.
 
-        Deterministic: the meter's samples come from fixed seeds, and its renders run on one
-        Dr.Jit thread, so the samples are summed into the meter's film in the same order every
-        time (with several threads the atomic accumulation order varies and the float32 sum
-        changes in its last bits, which an event-driven spike simulator turns into different
-        spike trains). On a CUDA variant the GPU's atomic sums have no fixed order; there the
-        measurement stored in the render state still keeps a resumed folder on one light level,
-        but two fresh renders may differ in the last bits. Raises InputError when no light
-        reaches the reference.
+        Deterministic on every back end (:meth:`_meter_mean`): the meter's samples come from fixed
+        seeds, each sample's value is computed on its own (the meter's ray, the path integrator,
+        the V(lambda) film's weight), and the values are summed on the host in float64 in a fixed
+        order. ``mi.render`` would sum them into the meter's one pixel with atomic adds, whose order
+        varies with the thread schedule (LLVM with several threads) and always on a GPU, so the
+        float32 sum changed in its last bits, and an event-driven spike simulator turns that into
+        different spike trains. Raises InputError when no light reaches the reference.
         """
         self.set_time(0.0)
         p, n = self.reference["point"], self.reference["normal"]
@@ -344,14 +364,7 @@ class SceneRenderer:
         meter_sensor = meter_sensor[0] if meter_sensor else meter_scene.sensors()[-1]
         # the meter measures E_raw with two independent halves -> its own MC error
         ss = np.random.SeedSequence([int(self.scene.render["seed"]), 0x5EED]).generate_state(2, dtype=np.uint32)
-        import drjit as dr
-        threads = dr.thread_count()
-        dr.set_thread_count(1)  # a fixed accumulation order: bitwise-reproducible light level
-        try:
-            vals = [float(np.asarray(mi.render(meter_scene, sensor=meter_sensor, seed=int(s), spp=spp // 2),
-                                     dtype=np.float64).ravel()[0]) for s in ss]
-        finally:
-            dr.set_thread_count(threads)
+        vals = [self._meter_mean(meter_scene, meter_sensor, int(s), spp // 2) for s in ss]
         meter = 0.5 * (vals[0] + vals[1])
         meter_se = abs(vals[0] - vals[1]) / 2.0
         total = direct + meter

@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# The checks a session with a lent GPU machine runs, in one call (the machine is lent by the minute):
+#   1. install the Mitsuba/Dr.Jit build carried in .whl/site.tar.xz (that machine reaches no package index)
+#      and this checkout (editable, no dependencies: numpy, numba, torch... are already there);
+#   2. the render-stage tests (photometry, motion, reproducibility, writer...) on the CUDA variant, forced by
+#      RENDER2SPIKE_VARIANT so that they cannot pass by falling back to the CPU;
+#   3. benchmarks/render_gpu.py: samples/s and frames/s of each working variant, against the 2-core CPU rows
+#      measured earlier (--cpu-ref).
+#   4. the README's main job (render2spike run scenes/rotating_disk.yaml) on the variant chosen automatically.
+# Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] \
+#        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
+# Making the carried file (here, on a machine with network):
+#   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
+set -u
+OUT=${1:?usage: gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S]}
+TEST_T=${2:-200}
+BENCH_T=${3:-150}
+DEMO_T=${4:-100}
+mkdir -p "$OUT/bench"
+export PYTHONUNBUFFERED=1
+t0=$(date +%s)
+stamp() { echo "[$(( $(date +%s) - t0 )) s, load $(cut -d' ' -f1-3 /proc/loadavg)] $*" | tee -a "$OUT/steps.txt"; }
+
+stamp "machine"
+{ nvidia-smi; uname -a; python3 --version; nproc; free -g
+  echo "--- libLLVM:"; ls /usr/lib/x86_64-linux-gnu/libLLVM* /usr/lib/llvm-*/lib/libLLVM* 2>&1 | head
+  echo "--- optix / cuda libraries:"; ldconfig -p | grep -i -E "optix|libcuda" ; ls /usr/local/nvidia/lib64 2>&1 | head -40
+} > "$OUT/env.txt" 2>&1
+[ -d /usr/local/nvidia/lib64 ] && export LD_LIBRARY_PATH=/usr/local/nvidia/lib64:${LD_LIBRARY_PATH:-}
+
+stamp "install"
+SITE=$(python3 -c "import site; print(site.getsitepackages()[0])")
+if [ -f .whl/site.tar.xz ]; then
+  tar -xJf .whl/site.tar.xz -C "$SITE" || stamp "unpacking .whl/site.tar.xz failed"
+fi
+python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >> "$OUT/env.txt" 2>&1 \
+  || { stamp "pip install -e . failed (see env.txt): using PYTHONPATH"; export PYTHONPATH=$PWD; }
+python3 -c "import mitsuba, drjit, render2spike; print('mitsuba', mitsuba.__version__, 'drjit', drjit.__version__)" \
+  >> "$OUT/env.txt" 2>&1 || stamp "imports failed (see env.txt)"
+stamp "auto variant: $(python3 -c 'from render2spike.render.backend import mitsuba; print(mitsuba().variant())' 2>&1 | tail -1)"
+
+stamp "render tests on cuda_ad_spectral (timeout ${TEST_T} s)"
+RENDER2SPIKE_VARIANT=cuda_ad_spectral timeout "$TEST_T" python3 -m pytest ${TESTS:-tests/render} -q -p no:cacheprovider \
+  -rfE --durations=10 > "$OUT/pytest_render_cuda.txt" 2>&1
+stamp "render tests exit $? ($(tail -1 "$OUT/pytest_render_cuda.txt"))"
+
+stamp "benchmark (start no point after ${BENCH_T} s)"
+python3 benchmarks/render_gpu.py --frames 16 --cpu-frames 4 --time-limit-s "$BENCH_T" --point-timeout-s 120 \
+  --cpu-ref benchmarks/results/gpu_2026-11-26/cpu_2core/render_gpu.json --out "$OUT/bench" ${BENCH_ARGS:-} \
+  > "$OUT/bench.txt" 2>&1
+stamp "benchmark exit $?"
+
+[ "$DEMO_T" -gt 0 ] && {
+stamp "main job (README's command) on the auto-selected variant (timeout ${DEMO_T} s)"
+TIMEFORMAT='wall %R s, user %U s, sys %S s'
+{ time timeout "$DEMO_T" render2spike run scenes/rotating_disk.yaml --out /tmp/demo; echo "exit $?"
+  cat /tmp/demo/summary.md; } > "$OUT/demo.txt" 2>&1
+stamp "main job: $(grep -E '^wall|^exit' "$OUT/demo.txt" | tr '\n' ' ')"
+}
+cat "$OUT/bench/render_gpu.md" 2>/dev/null | tail -30
+cat "$OUT/steps.txt"
