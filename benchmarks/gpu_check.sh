@@ -12,7 +12,8 @@
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
 set -u
-OUT=${1:?usage: gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S]}
+OUT=${1:?usage: gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S]}
+fail=0  # the exit status: 1 when a step failed (the later steps still run)
 TEST_T=${2:-200}
 BENCH_T=${3:-150}
 DEMO_T=${4:-100}
@@ -30,8 +31,9 @@ stamp "machine"
 
 stamp "install"
 SITE=$(python3 -c "import site; print(site.getsitepackages()[0])")
-if [ -f .whl/site.tar.xz ]; then
-  tar -xJf .whl/site.tar.xz -C "$SITE" || stamp "unpacking .whl/site.tar.xz failed"
+if [ -f .whl/site.tar.xz ]; then  # behind the machine's own packages (a .pth entry goes last on sys.path)
+  mkdir -p /tmp/r2s_site && tar -xJf .whl/site.tar.xz -C /tmp/r2s_site && echo /tmp/r2s_site > "$SITE/r2s_carried.pth" \
+    || { stamp "unpacking .whl/site.tar.xz failed"; fail=1; }
 fi
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >> "$OUT/env.txt" 2>&1 \
   || { stamp "pip install -e . failed (see env.txt): using PYTHONPATH"; export PYTHONPATH=$PWD; }
@@ -42,20 +44,25 @@ stamp "auto variant: $(python3 -c 'from render2spike.render.backend import mitsu
 stamp "render tests on cuda_ad_spectral (timeout ${TEST_T} s)"
 RENDER2SPIKE_VARIANT=cuda_ad_spectral timeout "$TEST_T" python3 -m pytest ${TESTS:-tests/render} -q -p no:cacheprovider \
   -rfE --durations=10 > "$OUT/pytest_render_cuda.txt" 2>&1
-stamp "render tests exit $? ($(tail -1 "$OUT/pytest_render_cuda.txt"))"
+rc=$?; [ $rc -eq 0 ] || fail=1
+stamp "render tests exit $rc ($(tail -1 "$OUT/pytest_render_cuda.txt"))"
 
 stamp "benchmark (start no point after ${BENCH_T} s)"
 python3 benchmarks/render_gpu.py --frames 16 --cpu-frames 4 --time-limit-s "$BENCH_T" --point-timeout-s 120 \
   --cpu-ref benchmarks/results/gpu_2026-11-26/cpu_2core/render_gpu.json --out "$OUT/bench" ${BENCH_ARGS:-} \
   > "$OUT/bench.txt" 2>&1
-stamp "benchmark exit $?"
+rc=$?; [ $rc -eq 0 ] || fail=1
+stamp "benchmark exit $rc"
 
 [ "$DEMO_T" -gt 0 ] && {
 stamp "main job (README's command) on the auto-selected variant (timeout ${DEMO_T} s)"
 TIMEFORMAT='wall %R s, user %U s, sys %S s'
-{ time timeout "$DEMO_T" render2spike run scenes/rotating_disk.yaml --out /tmp/demo; echo "exit $?"
-  cat /tmp/demo/summary.md; } > "$OUT/demo.txt" 2>&1
+demo=$(mktemp -d)/demo  # a fresh folder: a rerun must not resume a finished job
+{ time timeout "$DEMO_T" python3 -m render2spike run scenes/rotating_disk.yaml --out "$demo"; echo "exit $?"
+  cat "$demo/summary.md"; } > "$OUT/demo.txt" 2>&1
+grep -qx "exit 0" "$OUT/demo.txt" || fail=1
 stamp "main job: $(grep -E '^wall|^exit' "$OUT/demo.txt" | tr '\n' ' ')"
 }
 cat "$OUT/bench/render_gpu.md" 2>/dev/null | tail -30
 cat "$OUT/steps.txt"
+exit $fail

@@ -318,19 +318,34 @@ class SceneRenderer:
         the single-channel V(lambda) film: a sample's value is the mean over its wavelengths of ray
         weight x radiance; the 1 x 1 box-filtered film divides by the sample count), but each sample's
         value is brought to the host and the sum is a float64 ``numpy`` sum in sample order: the same
-        bits on every run, thread count and back end (CPU or GPU).
+        bits on every run and thread count of a back end (reproducible on each of CPU and GPU; the
+        two need not agree to the bit). The film's per-channel factor channel(lambda)/SRF(lambda),
+        which ``specfilm`` applies, is 1 here: the meter's film has one channel, tabulated on the
+        integer-nm grid of ``photometry.lux_response`` (measured within 1.2e-7 of 1); a film with
+        more channels would need it. Scalar variants take one sample per call, summed in the same way.
         """
+        dr, integrator = self._dr, meter_scene.integrator()
         sampler = meter_sensor.sampler().clone()
-        sampler.seed(seed, n)
-        wav_u = sampler.next_1d()
-        pos_u = sampler.next_2d()
-        ap_u = sampler.next_2d()
-        with self._dr.suspend_grad():
-            ray, weight = meter_sensor.sample_ray_differential(0.0, wav_u, pos_u, ap_u)
-            radiance, valid, _ = meter_scene.integrator().sample(meter_scene, sampler, ray)
-            value = self._dr.select(valid, weight * radiance, 0.0)
-        v = np.asarray(value, dtype=np.float64).reshape(-1, n)  # (wavelengths, samples): Dr.Jit's layout
-        return float(v.mean(axis=0).sum() / n)
+
+        def one_wave():  # the meter's samples, as many as the sampler's wavefront: (wavelengths, samples)
+            wav_u = sampler.next_1d()
+            pos_u = sampler.next_2d()
+            ap_u = sampler.next_2d()
+            with dr.suspend_grad():
+                ray, weight = meter_sensor.sample_ray_differential(0.0, wav_u, pos_u, ap_u)
+                radiance, valid, _ = integrator.sample(meter_scene, sampler, ray)
+                value = dr.select(valid, weight * radiance, 0.0)
+            return np.asarray(value, dtype=np.float64)
+        if dr.is_jit_v(self.mi.Float):  # LLVM / CUDA: all n samples in one wavefront
+            sampler.seed(seed, n)
+            v = one_wave().reshape(-1, n)  # Dr.Jit's layout: wavelengths first
+            return float(v.mean(axis=0).sum() / n)
+        sampler.seed(seed, 1)  # scalar variants: one sample per call, summed in the same order
+        total = 0.0
+        for _ in range(n):
+            total += float(one_wave().mean())
+            sampler.advance()
+        return total / n
 
     def measure_reference(self) -> dict:
         """Raw illuminance (V-weighted) at the reference at t = 0: analytic delta lights + irradiance meter.

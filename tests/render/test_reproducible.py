@@ -69,6 +69,19 @@ def test_light_measurement_is_deterministic(tmp_path):
     assert len(vals) == 1
 
 
+def _same_estimator(a, b):
+    """Two sets of independent estimates (8 each) of one quantity: the same mean, within 5 standard errors
+    of the difference, and the same spread, the variance ratio within the F(7, 7) distribution's central
+    99.9 % (a wrong sample count or correlated samples change the spread, not the mean)."""
+    from scipy import stats
+    se = np.sqrt(a.var(ddof=1) / len(a) + b.var(ddof=1) / len(b))
+    assert a.mean() > 0 and se > 0
+    assert abs(a.mean() - b.mean()) < 5 * se, (a.mean(), b.mean(), se)
+    ratio = a.var(ddof=1) / b.var(ddof=1)
+    lo, hi = stats.f.ppf([0.0005, 0.9995], len(a) - 1, len(b) - 1)
+    assert lo < ratio < hi, (ratio, lo, hi)
+
+
 def test_meter_host_sum_estimates_what_mitsuba_render_does(tmp_path):
     """The meter's per-sample host sum against ``mi.render`` of the same meter (atomic float32 sums).
 
@@ -88,9 +101,45 @@ def test_meter_host_sum_estimates_what_mitsuba_render_does(tmp_path):
     ours = np.array([r._meter_mean(sc, sensor, 100 + k, n) for k in range(8)])
     theirs = np.array([float(np.asarray(mi.render(sc, sensor=sensor, seed=200 + k, spp=n)).ravel()[0])
                        for k in range(8)])
-    se = np.sqrt(ours.var(ddof=1) / 8 + theirs.var(ddof=1) / 8)
-    assert ours.mean() > 0 and se > 0
-    assert abs(ours.mean() - theirs.mean()) < 5 * se, (ours.mean(), theirs.mean(), se)
+    _same_estimator(ours, theirs)
+
+
+_SCALAR_METER = """
+import json, sys
+from pathlib import Path
+from render2spike.render.builder import build_dict
+from render2spike.render.renderer import SceneRenderer
+from render2spike.render.scene import load_scene
+r = SceneRenderer(load_scene(Path(sys.argv[1])))
+a, b = r.measure_reference(), r.measure_reference()
+r.set_time(0.0)
+d, _ = build_dict(r.mi, r.scene, for_meter={"point": r.reference["point"], "normal": r.reference["normal"], "spp": 1024})
+sc = r.mi.load_dict(d, optimize=False)
+print(json.dumps({"variant": r.variant, "same": a == b,
+                  "means": [r._meter_mean(sc, sc.sensors()[-1], 300 + k, 1024) for k in range(8)]}))
+"""
+
+
+def test_meter_on_the_scalar_variant_is_deterministic_and_agrees(tmp_path):
+    """The scalar fallback evaluates the meter one sample per call: the same value twice, and the same
+    estimate as the JIT variant's (8 seeds each, within 5 standard errors of the difference)."""
+    from render2spike.render.builder import build_dict
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    scene = _scene(tmp_path)
+    env = dict(os.environ, PYTHONPATH=str(ROOT), RENDER2SPIKE_VARIANT="scalar_spectral")
+    out = subprocess.run([sys.executable, "-c", _SCALAR_METER, str(scene)], capture_output=True, text=True,
+                         timeout=300, env=env, cwd=str(ROOT))
+    assert out.returncode == 0, out.stderr[-2000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["variant"] == "scalar_spectral" and got["same"]
+    r = SceneRenderer(load_scene(scene))
+    r.set_time(0.0)
+    d, _ = build_dict(r.mi, r.scene, for_meter={"point": r.reference["point"], "normal": r.reference["normal"],
+                                                "spp": 1024})
+    sc = r.mi.load_dict(d, optimize=False)
+    jit = np.array([r._meter_mean(sc, sc.sensors()[-1], 400 + k, 1024) for k in range(8)])
+    _same_estimator(jit, np.array(got["means"]))
 
 
 @pytest.fixture(scope="module")
