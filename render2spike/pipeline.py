@@ -103,10 +103,11 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
 
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
-                 dat: bool = False, log=print) -> dict:
+                 dat: bool = False, variant: str | None = None, log=print) -> dict:
     """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary.
 
-    ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). Rerunning into ``out``
+    ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). ``variant``: the Mitsuba
+    variant (None: the render stage's own choice, :func:`render2spike.render.backend.mitsuba`). Rerunning into ``out``
     resumes the render; an ``out`` whose summary records another scene, model, seed or profile is refused
     (InputError) unless ``overwrite``.
     """
@@ -130,7 +131,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         except (OSError, ValueError):
             old = {}
         from .render import backend
-        now = {"scene_hash": sc.content_hash(settings_of(sc, backend.mitsuba().variant())), "model": model,
+        now = {"scene_hash": sc.content_hash(settings_of(sc, backend.mitsuba(variant).variant())), "model": model,
                "seed": seed, "profile": sc.profile.name}
         diff = [k for k in now if old.get(k) != now[k]]
         if diff:
@@ -139,7 +140,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
                              + "); pass --overwrite to replace it, or choose another --out", path=out)
     created = not out.exists()
     try:
-        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, log=log)
+        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, variant=variant, log=log)
     except BaseException:
         if created:  # the render left nothing (it removes a frames folder it wrote nothing into): no empty OUT
             import contextlib
@@ -187,6 +188,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         "frames": res.n_frames,
         "frames_rendered_now": res.n_rendered,
         "spp": res.spp,
+        "variant": m.get("variant"),
         "render_noise_ratio_mean": (m.get("render_noise_ratio") or {}).get("mean"),
         "intervals": T,
         "spikes": n_spk,
@@ -208,7 +210,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
 | light level (reference) | {sc.illuminance_lux:g} lux |
 | clip | {sc.duration_s:g} s = {T} intervals of {prof.interval_s * 1e6:g} us |
 | sensor | {prof.name}, {H} x {W} px, threshold {prof.threshold_e:g} e- |
-| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {res.spp} spp |
+| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {res.spp} spp, Mitsuba `{m.get("variant")}` |
 | render noise / shot noise | {summary['render_noise_ratio_mean'] if summary['render_noise_ratio_mean'] is None else f"{summary['render_noise_ratio_mean']:.3f}"} (RMS over {(m.get('render_noise_ratio') or {}).get('window_intervals')} intervals) |
 | mean photoelectrons | {exp_e:.3g} e- per pixel per interval |
 | spikes | {n_spk} ({rate_per_interval:.4f} per pixel per interval = {summary['spike_rate_hz']:.1f} Hz) |

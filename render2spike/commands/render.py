@@ -38,6 +38,7 @@ examples:
   render2spike render scenes/translating_object.yaml --out out/fast \\
       --set objects.cube.motion.parametric.0.translate.velocity_m_s=[1,0,0] --spp 64
   render2spike render room_pan --out out/room --keyframe-rate 2000 --render-seed 3 --overwrite
+  render2spike render rotating_disk --out out/cpu --variant llvm_ad_spectral   # on the CPU, GPU or not
 """
 
 
@@ -57,8 +58,21 @@ def add_scene_options(p) -> None:
     p.add_argument("--render-seed", type=int, default=None, metavar="N",
                    help="render base seed: per-frame Monte Carlo seeds derive from it (default: the scene's "
                         "render.seed, 0 if unset)")
+    from render2spike.render.backend import FALLBACK_VARIANT, GPU_VARIANT, PREFERRED_VARIANT
+    p.add_argument("--variant", default="auto", choices=("auto", GPU_VARIANT, PREFERRED_VARIANT, FALLBACK_VARIANT),
+                   help=f"Mitsuba variant that renders: auto (default) takes the GPU ({GPU_VARIANT}) when one "
+                        f"works, else the CPU ({PREFERRED_VARIANT}), else {FALLBACK_VARIANT} (slow, same physics). "
+                        "$RENDER2SPIKE_VARIANT sets the same; this option wins over it. The variant's back end "
+                        "(cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends are "
+                        "never mixed in one folder")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def variant_of(args) -> str | None:
+    """The ``--variant`` asked for, or None for ``auto`` (the render stage's own choice)."""
+    v = getattr(args, "variant", "auto")
+    return None if v in (None, "auto") else v
 
 
 def scene_sets(args) -> list[str]:
@@ -89,10 +103,10 @@ def run(args) -> int:
         raise InputError("`render` makes no spikes, and --seed is the spike seed in every command; use "
                          "--render-seed N to seed the render", field="--seed")
     sc = load_scene(args.scene, scene_sets(args), lux=args.lux, duration_s=args.duration, profile=args.profile)
-    res = render_scene(sc, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    res = render_scene(sc, args.out, overwrite=args.overwrite, progress=not args.quiet, variant=variant_of(args))
     m = res.manifest
     ts = m.get("temporal_sampling", {})
-    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {res.spp} spp; "
+    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}; {res.spp} spp; "
           f"{ts.get('n_refined', 0)} added by adaptive refinement; render/shot noise "
           f"{(m.get('render_noise_ratio') or {}).get('mean', float('nan')):.3f}; {res.seconds:.1f} s")
     return 0

@@ -1,0 +1,56 @@
+"""``--variant`` on `render` and `run`: the asked variant renders (over $RENDER2SPIKE_VARIANT), is recorded, and a
+folder rendered by one back end is not resumed by another."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.render.conftest import needs_mitsuba
+
+pytestmark = [pytest.mark.render, needs_mitsuba]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _cli(*args, env_variant=None):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("RENDER2SPIKE_VARIANT", None)
+    if env_variant:
+        env["RENDER2SPIKE_VARIANT"] = env_variant
+    return subprocess.run([sys.executable, "-m", "render2spike", *args], capture_output=True, text=True,
+                          timeout=300, env=env, cwd=str(ROOT))
+
+
+def test_run_with_variant_wins_over_the_environment_and_is_recorded(tmp_path, write_scene):
+    scene = write_scene()
+    out = tmp_path / "run"
+    r = _cli("run", str(scene), "--out", str(out), "--quiet", "--spp", "4", "--variant", "scalar_spectral",
+             env_variant="llvm_ad_spectral")
+    assert r.returncode == 0, r.stderr
+    manifest = json.loads((out / "frames" / "frames.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())
+    assert manifest["variant"] == "scalar_spectral" and summary["variant"] == "scalar_spectral"
+    assert "`scalar_spectral`" in (out / "summary.md").read_text()
+
+
+def test_another_back_end_does_not_resume_a_folder(tmp_path, write_scene):
+    scene = write_scene()
+    out = tmp_path / "frames"
+    first = _cli("render", str(scene), "--out", str(out), "--quiet", "--spp", "4", "--variant", "scalar_spectral")
+    assert first.returncode == 0, first.stderr
+    assert "scalar_spectral" in first.stdout
+    again = _cli("render", str(scene), "--out", str(out), "--quiet", "--spp", "4", "--variant", "llvm_ad_spectral")
+    assert again.returncode != 0
+    assert "--overwrite" in again.stderr  # the refusal says how to replace the folder
+    assert json.loads((out / "frames.json").read_text())["variant"] == "scalar_spectral"  # left as it was
+
+
+def test_unknown_variant_lists_the_choices(tmp_path, write_scene):
+    r = _cli("render", str(write_scene()), "--out", str(tmp_path / "x"), "--variant", "cuda_ad_rgb")
+    assert r.returncode == 2
+    for name in ("auto", "cuda_ad_spectral", "llvm_ad_spectral", "scalar_spectral"):
+        assert name in r.stderr
