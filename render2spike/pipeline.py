@@ -107,7 +107,8 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary.
 
     ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). ``variant``: the Mitsuba
-    variant (None: the render stage's own choice, :func:`render2spike.render.backend.mitsuba`). Rerunning into ``out``
+    variant, as :func:`render2spike.render.backend.mitsuba` takes it (None: ``$RENDER2SPIKE_VARIANT``, else the
+    automatic choice; ``"auto"``: the automatic choice). Rerunning into ``out``
     resumes the render; an ``out`` whose summary records another scene, model, seed or profile is refused
     (InputError) unless ``overwrite``.
     """
@@ -135,9 +136,13 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
                "seed": seed, "profile": sc.profile.name}
         diff = [k for k in now if old.get(k) != now[k]]
         if diff:
+            hint = ""
+            was, used = old.get("variant"), backend.mitsuba(variant).variant()
+            if was and backend.variant_family(was) != backend.variant_family(used):
+                hint = f"; it was rendered with Mitsuba '{was}', this run uses '{used}': pass --variant {was} to resume it"
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)
-                             + "); pass --overwrite to replace it, or choose another --out", path=out)
+                             + "); pass --overwrite to replace it, or choose another --out" + hint, path=out)
     created = not out.exists()
     try:
         res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, variant=variant, log=log)

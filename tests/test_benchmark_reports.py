@@ -15,11 +15,15 @@ ROOT = Path(__file__).resolve().parents[1]
 def _module():
     spec = importlib.util.spec_from_file_location("render_gpu", ROOT / "benchmarks" / "render_gpu.py")
     mod = importlib.util.module_from_spec(spec)
-    saved = list(sys.path)
+    saved, had = list(sys.path), sys.modules.get("tables")
     try:
         spec.loader.exec_module(mod)  # it puts benchmarks/ first on sys.path for its `tables`
     finally:
-        sys.path[:] = saved  # not left to shadow anything in later tests
+        sys.path[:] = saved  # neither the path nor the benchmark's `tables` module is left to shadow
+        if had is None:      # anything in later tests (`tables` is also PyTables' name)
+            sys.modules.pop("tables", None)
+        else:
+            sys.modules["tables"] = had
     return mod
 
 

@@ -59,20 +59,21 @@ def add_scene_options(p) -> None:
                    help="render base seed: per-frame Monte Carlo seeds derive from it (default: the scene's "
                         "render.seed, 0 if unset)")
     from render2spike.render.backend import FALLBACK_VARIANT, GPU_VARIANT, PREFERRED_VARIANT
-    p.add_argument("--variant", default="auto", choices=("auto", GPU_VARIANT, PREFERRED_VARIANT, FALLBACK_VARIANT),
-                   help=f"Mitsuba variant that renders: auto (default) takes the GPU ({GPU_VARIANT}) when one "
-                        f"works, else the CPU ({PREFERRED_VARIANT}), else {FALLBACK_VARIANT} (slow, same physics). "
-                        "$RENDER2SPIKE_VARIANT sets the same; this option wins over it. The variant's back end "
-                        "(cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends are "
-                        "never mixed in one folder")
+    p.add_argument("--variant", default=None, choices=("auto", GPU_VARIANT, PREFERRED_VARIANT, FALLBACK_VARIANT),
+                   help=f"Mitsuba variant that renders: auto takes the GPU ({GPU_VARIANT}) when one works, else "
+                        f"the CPU ({PREFERRED_VARIANT}), else {FALLBACK_VARIANT} (slow, same physics). Default: "
+                        "$RENDER2SPIKE_VARIANT if set, else auto; this option wins over the variable. The variant's "
+                        "back end (cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends "
+                        "are never mixed in one folder, and a rerun must ask for the same back end to resume")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def variant_of(args) -> str | None:
-    """The ``--variant`` asked for, or None for ``auto`` (the render stage's own choice)."""
-    v = getattr(args, "variant", "auto")
-    return None if v in (None, "auto") else v
+    """The ``--variant`` asked for, as :func:`render2spike.render.backend.mitsuba` takes it: None when not
+    given ($RENDER2SPIKE_VARIANT, else the automatic choice), ``"auto"`` for the automatic choice whatever
+    the variable says, else the variant's name."""
+    return getattr(args, "variant", None)
 
 
 def scene_sets(args) -> list[str]:

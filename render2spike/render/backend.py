@@ -14,8 +14,9 @@ of Debian 12) Dr.Jit *aborts the process*, which no ``try`` can catch. So:
 4. otherwise the scalar variant (``scalar_spectral``; slower, same physics) is
    used, with a message saying to ``apt-get install libllvm19``.
 
-The environment variable ``RENDER2SPIKE_VARIANT`` forces a variant (e.g.
-``llvm_ad_spectral`` on a machine with a GPU, to keep to the CPU). The variant
+The environment variable ``RENDER2SPIKE_VARIANT`` (or the commands' ``--variant``,
+which wins over it) forces a variant (e.g. ``llvm_ad_spectral`` on a machine with
+a GPU, to keep to the CPU); ``auto`` or empty means the automatic choice. The variant
 is part of every frames folder's scene hash (``job.settings_of``), so frames
 rendered on a GPU and on a CPU are never mixed in one folder.
 """
@@ -90,9 +91,12 @@ def choose_variant(want: str | None, available, cuda_present: bool, probe) -> tu
         if variant_family(want) in ("llvm", "cuda"):
             ok, msg = probe(want)
             if not ok:
-                hint = INSTALL_HINT if variant_family(want) == "llvm" else \
+                msg = msg.split(" Make sure to call jit_init")[0]  # Dr.Jit's advice is for its own API users
+                hint = INSTALL_HINT.split(" Falling back")[0] if variant_family(want) == "llvm" else \
                     "The CUDA variant needs an NVIDIA GPU with a working driver."
-                raise DependencyError(f"Mitsuba variant '{want}' does not work here ({msg}). {hint}")
+                raise DependencyError(f"Mitsuba variant '{want}' does not work here ({msg}). {hint} Or leave the "
+                                      f"variant to the automatic choice (--variant auto, or unset "
+                                      f"RENDER2SPIKE_VARIANT), which falls back to what works.")
         return want, notes
     if cuda_present and GPU_VARIANT in available:
         ok, msg = probe(GPU_VARIANT)
@@ -143,40 +147,57 @@ def probe_variant(variant: str, libllvm: str | None) -> tuple[bool, str]:
 
 _STATE: dict = {}
 
+#: ``variant`` value of :func:`mitsuba` that asks for the automatic choice even when
+#: ``$RENDER2SPIKE_VARIANT`` is set (the CLI's explicit ``--variant auto``)
+AUTO = "auto"
+
+
+def _env_variant() -> str | None:
+    """``$RENDER2SPIKE_VARIANT``, with unset, empty and ``auto`` all meaning: choose automatically."""
+    v = (os.environ.get("RENDER2SPIKE_VARIANT") or "").strip()
+    return None if v in ("", AUTO) else v
+
 
 def mitsuba(variant: str | None = None):
     """Import Mitsuba with a working spectral variant set; returns the ``mitsuba`` module.
 
-    ``variant`` (or ``$RENDER2SPIKE_VARIANT``) forces one; otherwise
-    :func:`choose_variant` picks the CUDA variant when a GPU works, else
-    :data:`PREFERRED_VARIANT` if it passes :func:`probe_variant`, else
-    :data:`FALLBACK_VARIANT`. The choice is made once per process.
+    ``variant``: a variant name forces it; None takes ``$RENDER2SPIKE_VARIANT`` if set, else the
+    automatic choice; :data:`AUTO` the automatic choice whatever the environment says. The automatic
+    choice (:func:`choose_variant`) is the CUDA variant when a GPU works, else
+    :data:`PREFERRED_VARIANT` if it passes :func:`probe_variant`, else :data:`FALLBACK_VARIANT`.
+    Each request is resolved once per process (probes included) and the variant is switched to it on
+    every call, so a later call without ``variant`` goes back to that choice rather than keeping a
+    variant an earlier call forced. A variant that is missing, does not work here or is not spectral
+    raises :class:`DependencyError` saying what to use instead.
     """
-    if "mi" in _STATE:
-        mi = _STATE["mi"]
-        if variant and variant != mi.variant():
-            mi.set_variant(variant)
-        return mi
-    want = variant or os.environ.get("RENDER2SPIKE_VARIANT") or None
-    lib = find_libllvm()
-    if lib and "DRJIT_LIBLLVM_PATH" not in os.environ:
-        os.environ["DRJIT_LIBLLVM_PATH"] = lib
-    try:
-        import mitsuba as mi  # noqa: F401  (importing alone does not initialise the LLVM backend)
-    except ImportError as exc:
-        raise DependencyError("Mitsuba 3 is not installed: run `pip install 'render2spike[render]'` "
-                              "(mitsuba>=3.5, drjit)") from exc
-    chosen, notes = choose_variant(want, set(mi.variants()), want is None and cuda_device_present(),
-                                   lambda v: probe_variant(v, lib))
-    for note in notes:
-        warnings.warn(note, RuntimeWarning, stacklevel=2)
-        print(f"render2spike: note: {note}", file=sys.stderr)
-    if chosen not in mi.variants():
-        raise DependencyError(f"Mitsuba variant '{chosen}' is not available; this build has: "
-                              f"{', '.join(mi.variants())}")
-    if "spectral" not in chosen:
-        raise DependencyError(f"render2spike needs a spectral Mitsuba variant, got '{chosen}'")
-    mi.set_variant(chosen)
-    mi.set_log_level(mi.LogLevel.Error)  # no per-render chatter; errors still raise
-    _STATE["mi"] = mi
+    want = None if variant == AUTO else (variant or _env_variant())
+    mi = _STATE.get("mi")
+    if mi is None:
+        lib = find_libllvm()
+        if lib and "DRJIT_LIBLLVM_PATH" not in os.environ:
+            os.environ["DRJIT_LIBLLVM_PATH"] = lib
+        try:
+            import mitsuba as mi  # noqa: F401  (importing alone does not initialise the LLVM backend)
+        except ImportError as exc:
+            raise DependencyError("Mitsuba 3 is not installed: run `pip install 'render2spike[render]'` "
+                                  "(mitsuba>=3.5, drjit)") from exc
+        _STATE["mi"] = mi
+    chosen = _STATE.setdefault("chosen", {}).get(want)
+    if chosen is None:
+        lib = os.environ.get("DRJIT_LIBLLVM_PATH") or find_libllvm()
+        chosen, notes = choose_variant(want, set(mi.variants()), want is None and cuda_device_present(),
+                                       lambda v: probe_variant(v, lib))
+        for note in notes:
+            warnings.warn(note, RuntimeWarning, stacklevel=2)
+            print(f"render2spike: note: {note}", file=sys.stderr)
+        if chosen not in mi.variants():
+            raise DependencyError(f"Mitsuba variant '{chosen}' is not available; this build has: "
+                                  f"{', '.join(mi.variants())}")
+        if "spectral" not in chosen:
+            raise DependencyError(f"render2spike needs a spectral Mitsuba variant, got '{chosen}' (use "
+                                  f"{GPU_VARIANT}, {PREFERRED_VARIANT} or {FALLBACK_VARIANT})")
+        _STATE["chosen"][want] = chosen
+    if mi.variant() != chosen:
+        mi.set_variant(chosen)
+        mi.set_log_level(mi.LogLevel.Error)  # no per-render chatter; errors still raise
     return mi

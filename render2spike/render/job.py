@@ -253,9 +253,14 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
     old_hash = (manifest or {}).get("scene_hash") or (state or {}).get("scene_hash")
     if old_hash is not None and old_hash != scene_hash:
         if not overwrite:
+            old_variant = (manifest or {}).get("variant") or (state or {}).get("variant")
+            hint = ""
+            if old_variant and backend.variant_family(old_variant) != backend.variant_family(variant):
+                hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
+                        f"--variant {old_variant} to resume it.")
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
-                             f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out",
-                             path=out)
+                             f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out."
+                             + hint, path=out)
         _clean(out, state, manifest)
         manifest = state = None
     elif (manifest or state) and overwrite:
@@ -274,8 +279,8 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         _clean(out, state, manifest)  # a state from before the journal: its frames are named differently
         state = None
     if state is None:
-        state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "frames": {},
-                 "complete": False}
+        state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "variant": variant,
+                 "frames": {}, "complete": False}
     # keep only frames whose files exist
     state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
     n_resumed = len(state["frames"])

@@ -80,3 +80,34 @@ def test_scene_hash_separates_cpu_and_gpu_frames(write_scene):
     assert variant_family(GPU_VARIANT) == "cuda" and variant_family(PREFERRED_VARIANT) == "llvm"
     hashes = {v: sc.content_hash(settings_of(sc, v)) for v in (GPU_VARIANT, PREFERRED_VARIANT, FALLBACK_VARIANT)}
     assert len(set(hashes.values())) == 3
+
+
+def test_a_forced_variant_that_fails_says_what_to_use_instead():
+    """The CUDA probe's Dr.Jit text tells its own API users to call jit_init: not passed on to ours."""
+    def probe(v):
+        return False, ("ImportError: jit_init_thread_state(): the CUDA backend hasn't been initialized. "
+                       "Make sure to call jit_init(JitBackend::CUDA) to properly initialize this backend.")
+    with pytest.raises(DependencyError) as err:
+        choose_variant(GPU_VARIANT, ALL, False, probe)
+    msg = str(err.value)
+    assert "NVIDIA" in msg and "--variant auto" in msg and "jit_init(" not in msg
+
+
+def test_a_forced_variant_does_not_stick(monkeypatch):
+    """After a call that forced a variant, a call without one is back on the automatic choice."""
+    pytest.importorskip("mitsuba")
+    monkeypatch.delenv("RENDER2SPIKE_VARIANT", raising=False)
+    auto = backend.mitsuba().variant()
+    try:
+        assert backend.mitsuba(FALLBACK_VARIANT).variant() == FALLBACK_VARIANT
+        assert backend.mitsuba().variant() == auto
+        monkeypatch.setenv("RENDER2SPIKE_VARIANT", FALLBACK_VARIANT)
+        assert backend.mitsuba().variant() == FALLBACK_VARIANT      # the variable counts...
+        assert backend.mitsuba(backend.AUTO).variant() == auto      # ...unless auto is asked for
+        monkeypatch.setenv("RENDER2SPIKE_VARIANT", "auto")
+        assert backend.mitsuba().variant() == auto                  # "auto" in the variable: the same
+        with pytest.raises(DependencyError, match="spectral"):
+            backend.mitsuba("scalar_rgb")
+    finally:
+        monkeypatch.delenv("RENDER2SPIKE_VARIANT", raising=False)
+        backend.mitsuba()  # leave the process on the automatic choice for the tests after this one

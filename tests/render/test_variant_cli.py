@@ -35,8 +35,31 @@ def test_run_with_variant_wins_over_the_environment_and_is_recorded(tmp_path, wr
     summary = json.loads((out / "summary.json").read_text())
     assert manifest["variant"] == "scalar_spectral" and summary["variant"] == "scalar_spectral"
     assert "`scalar_spectral`" in (out / "summary.md").read_text()
+    again = _cli("run", str(scene), "--out", str(out), "--quiet", "--spp", "4", "--variant", "scalar_spectral")
+    assert again.returncode == 0, again.stderr  # the same back end resumes: nothing rendered again
+    assert json.loads((out / "summary.json").read_text())["frames_rendered_now"] == 0
 
 
+def _llvm_works():
+    from render2spike.render.backend import PREFERRED_VARIANT, find_libllvm, probe_variant
+    return probe_variant(PREFERRED_VARIANT, find_libllvm())[0]
+
+
+needs_llvm = pytest.mark.skipif(not _llvm_works(), reason="Mitsuba's LLVM variant does not work here")
+
+
+@needs_llvm
+def test_explicit_auto_ignores_the_environment(tmp_path, write_scene):
+    scene = write_scene()
+    r = _cli("render", str(scene), "--out", str(tmp_path / "a"), "--quiet", "--spp", "4", "--variant", "auto",
+             env_variant="scalar_spectral")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "a" / "frames.json").read_text())["variant"] != "scalar_spectral"
+    r = _cli("render", str(scene), "--out", str(tmp_path / "b"), "--quiet", "--spp", "4", env_variant="auto")
+    assert r.returncode == 0, r.stderr  # RENDER2SPIKE_VARIANT=auto: the automatic choice, not an error
+
+
+@needs_llvm
 def test_another_back_end_does_not_resume_a_folder(tmp_path, write_scene):
     scene = write_scene()
     out = tmp_path / "frames"
@@ -46,6 +69,7 @@ def test_another_back_end_does_not_resume_a_folder(tmp_path, write_scene):
     again = _cli("render", str(scene), "--out", str(out), "--quiet", "--spp", "4", "--variant", "llvm_ad_spectral")
     assert again.returncode != 0
     assert "--overwrite" in again.stderr  # the refusal says how to replace the folder
+    assert "--variant scalar_spectral" in again.stderr  # and how to resume it
     assert json.loads((out / "frames.json").read_text())["variant"] == "scalar_spectral"  # left as it was
 
 
