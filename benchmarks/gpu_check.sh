@@ -38,7 +38,7 @@ fi
 python3 -m pip install -q --no-deps --no-build-isolation --no-index -e . >> "$OUT/env.txt" 2>&1 \
   || { stamp "pip install -e . failed (see env.txt): using PYTHONPATH"; export PYTHONPATH=$PWD; }
 python3 -c "import mitsuba, drjit, render2spike; print('mitsuba', mitsuba.__version__, 'drjit', drjit.__version__)" \
-  >> "$OUT/env.txt" 2>&1 || stamp "imports failed (see env.txt)"
+  >> "$OUT/env.txt" 2>&1 || { stamp "imports failed (see env.txt)"; fail=1; }
 stamp "auto variant: $(python3 -c 'from render2spike.render.backend import mitsuba; print(mitsuba().variant())' 2>&1 | tail -1)"
 
 stamp "render tests on cuda_ad_spectral (timeout ${TEST_T} s)"
