@@ -86,6 +86,9 @@ def m_overhead(cfg):
     order pipeline, bare, bare, pipeline (``rounds`` times, default 2) cancels a load that drifts linearly;
     overhead = sum of pipeline time / sum of bare time. (Frame-by-frame interleaving, used before, cannot be fair to a background
     writer: its writes would overlap the bare render, or lose their overlap with the pipeline's own.)
+    Kernel compilation inside a pipeline block (its scene is loaded anew: a new kernel hash, once per job)
+    is read from Dr.Jit's kernel history, taken out of the block's wall and CPU time, and returned as
+    ``compile_s_per_block`` with ``kernels_compiled_per_block``; the bare blocks run warmed kernels.
     """
     import drjit as dr
 
@@ -437,6 +440,9 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "before, 1 extra launch per block of up to `VERIFY_EVERY` frames); 'without verification' takes "
               "one bare frame per verification launch made out. 'per block': each pipeline block over its neighbouring bare block. "
               "'median block': the median of those, which one block disturbed by another process moves less. "
+              "Kernel compilation in a pipeline block (a job's freshly loaded scene gets a new kernel hash; "
+              "Dr.Jit's kernel history gives its time) is taken out of the block since 2026-11-26 (in the JSON: "
+              "`compile_s_per_block`). "
               "'CPU': the same ratio as 'overhead' in process CPU time (all threads); Dr.Jit's worker thread "
               "busy-waits between kernels, so both cores read as busy in either block and this ratio follows the "
               "wall-time one. 'vs direct': the pipeline over a bare loop of the render call it makes itself (the "

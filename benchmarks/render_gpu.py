@@ -199,6 +199,10 @@ def main(argv=None):
     ap.add_argument("--report-only", action="store_true",
                     help="rewrite render_gpu.md from the render_gpu.json in --out (e.g. with a newer --cpu-ref)")
     a = ap.parse_args(argv)
+    for need, what in (((Path(a.out) / "render_gpu.json") if a.report_only else None, "--report-only reads"),
+                       (Path(a.cpu_ref) if a.cpu_ref else None, "--cpu-ref names")):
+        if need is not None and not need.is_file():
+            ap.error(f"{what} {need}, which does not exist (a render_gpu.json written by an earlier run)")
     if a.report_only:
         d = json.loads((Path(a.out) / "render_gpu.json").read_text())
         ref = json.loads(Path(a.cpu_ref).read_text()) if a.cpu_ref else None
