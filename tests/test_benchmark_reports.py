@@ -1,19 +1,23 @@
-"""The GPU render benchmark's report logic (benchmarks/render_gpu.py) on made-up rows: no rendering, no timing.
+"""The GPU benchmarks' report logic on made-up rows and files: no rendering, no timing.
 
-What the issue's goal line decides from (GPU samples/s over CPU samples/s at the same scene, resolution and
-spp, per CPU measured against) must pair the right rows and say met / not met correctly.
+``benchmarks/render_gpu.py``: what the issue's goal line decides from (GPU samples/s over CPU samples/s at the
+same scene, resolution and spp, per CPU measured against) must pair the right rows and say met / not met
+correctly. ``benchmarks/repro_check.py``: its frame comparison must see a one-ulp difference and count it.
+``benchmarks/render_launch.py``: its table must carry every row, freeze outcome and load.
 """
 
 import importlib.util
 import json
 import sys
+
+import numpy as np
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _module():
-    spec = importlib.util.spec_from_file_location("render_gpu", ROOT / "benchmarks" / "render_gpu.py")
+def _module(name="render_gpu"):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     saved, had = list(sys.path), sys.modules.get("tables")
     try:
@@ -71,3 +75,50 @@ def test_goal_lines_per_reference(tmp_path):
     assert "100.0-100.0x" in other and "40.0-40.0x" in other
     saved = json.loads((tmp_path / "render_gpu.json").read_text())
     assert saved["rows"] == rows
+
+
+def _frames(folder, values):
+    from sensor.frames import frame_filename, write_frame
+    folder.mkdir()
+    for i, v in enumerate(values):
+        write_frame(folder / frame_filename(i), v, np.full_like(v, 3.0), time_s=i * 1e-3)
+
+
+def test_repro_compare_counts_a_one_ulp_difference(tmp_path):
+    import pytest
+    mod = _module("repro_check")
+    rng = np.random.default_rng(5)
+    a = [rng.uniform(1.0, 2.0, (4, 6)).astype(np.float32) for _ in range(3)]
+    b = [x.copy() for x in a]
+    b[1][2, 3] = np.nextafter(b[1][2, 3], np.float32(3.0))  # one ulp up, in one value of one frame
+    _frames(tmp_path / "x", a)
+    _frames(tmp_path / "y", a)
+    _frames(tmp_path / "z", b)
+    same = mod.compare(tmp_path / "x", tmp_path / "y")
+    assert same == {"frames": 3, "frames_bitwise_equal": 3, "pixel_values_compared": 3 * 2 * 24,
+                    "pixel_values_differing": 0, "max_rel_diff": 0.0}
+    diff = mod.compare(tmp_path / "x", tmp_path / "z")
+    assert diff["frames_bitwise_equal"] == 2 and diff["pixel_values_differing"] == 1
+    ulp = float(np.spacing(a[1][2, 3])) / float(a[1][2, 3])  # one float32 ulp relative to the value
+    assert diff["max_rel_diff"] == pytest.approx(ulp, rel=1e-6)
+    sorted((tmp_path / "z").glob("frame_*.exr"))[-1].unlink()
+    with pytest.raises(RuntimeError, match="different frame files"):
+        mod.compare(tmp_path / "x", tmp_path / "z")
+
+
+def test_launch_table_has_every_row_and_freeze_outcome(tmp_path):
+    mod = _module("render_launch")
+    med = {k: 1.0 for k in ("wall_ms", "call_ms", "sync_ms", "trace_ms", "codegen_ms", "backend_ms", "exec_ms")}
+    base = {"date": "2026-11-26 12:00:00", "machine": "M", "load_before": [1.0, 2.0, 3.0],
+            "load_after": [1.5, 2.0, 3.0], "variant": "cuda_ad_spectral", "scene": "s", "resolution": "32x48",
+            "spp": 16, "median": dict(med, kernels=2), "samples_per_s": 1e7}
+    rows = [dict(base), dict(base, freeze={"works": False, "error": "RuntimeError: VarType mismatch"}),
+            dict(base, spp=256, freeze={"works": True, "wall_ms_median": 0.5, "films_equal_unfrozen": 9,
+                                        "frames": 10})]
+    text = mod.write_md(tmp_path, rows).read_text()
+    table = [ln for ln in text.splitlines() if ln.startswith("|")]
+    assert len(table) == 2 + 3
+    assert len({ln.count("|") for ln in table}) == 1  # header, separator and rows have the same columns
+    assert "1.00, 2.00, 3.00 / 1.50, 2.00, 3.00" in table[2]
+    assert table[2].endswith("| - |") and "fails: RuntimeError: VarType mismatch" in table[3]
+    assert "works: 0.50 ms, 9/10 films equal" in table[4]

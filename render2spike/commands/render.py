@@ -24,8 +24,9 @@ Keyframes start at --keyframe-rate and are refined where the irradiance changes
 by more than the scene's tolerance between neighbours. Samples per pixel are
 chosen so render noise stays below photon shot noise (over a 64-interval
 window) unless --spp is given. Rerunning the same command resumes (the result
-is an uninterrupted render's, to float round-off: at high spp Mitsuba's LLVM
-backend may differ in a pixel's last bit run to run); a changed scene or setting is
+is an uninterrupted render's, to float round-off: at high spp a pixel may differ
+in its last bits run to run, rarely on the CPU, often on a GPU, whose film sums are
+atomic); a changed scene or setting is
 refused unless --overwrite. While it renders, the folder is locked: a second
 render into it is refused, naming the first (pid, host, start time).
 Frame files are named by time (frame_TTTTTTTT.exr, the tick on the finest

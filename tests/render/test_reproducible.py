@@ -5,8 +5,9 @@ The scene has an environment light, so the light-level measurement (the irradian
 atomic float32 adds it depended on the thread schedule (4 different values in 8 calls on LLVM with
 several threads; 5 in 6 on an H100, where the fix of the time, one Dr.Jit thread, does not apply);
 it is now a float64 host sum of per-sample values.
-These renders use 8 and 64 spp; at higher spp (121) the frames themselves were seen to differ run to run
-in a pixel's last bit (Mitsuba's LLVM backend), which the docs state.
+These renders use 8 spp (32 x 48); at higher spp the frames themselves were seen to differ run to run
+in a pixel's last bits (Mitsuba's LLVM backend at 121 spp, rarely; on an H100 at 64 spp and more, often:
+``benchmarks/repro_check.py``), which the docs state.
 """
 
 import copy

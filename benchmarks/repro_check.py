@@ -1,0 +1,111 @@
+"""render2spike reproducibility check: the same render command, run twice in fresh processes, gives the same frames?
+
+The render stage promises that rerunning a command gives an uninterrupted render's frames "to float
+round-off" (``render2spike render --help``). Where Dr.Jit sums a film's samples with atomic float adds
+whose order the device does not fix (the GPU; the CPU at high spp), two runs can differ in a pixel's
+last bits. This measures by how much, per spp::
+
+    python benchmarks/repro_check.py --variant cuda_ad_spectral --spp 64 256 1024 --out DIR
+
+For each spp it runs ``render2spike render SCENE --spp N`` twice (fixed keyframes, adaptive refinement
+off, fresh folders) and compares every frame's ``Phi`` and ``E`` channels: frames bitwise equal, pixels
+that differ, and the largest difference relative to the pixel's value. Writes ``repro.json`` and
+``repro.md`` in ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+
+
+def _render(scene: str, spp: int, variant: str | None, duration_s: float, out: Path) -> float:
+    cmd = [sys.executable, "-m", "render2spike", "render", scene, "--out", str(out), "--spp", str(spp),
+           "--duration", str(duration_s), "--set", "render.adaptive.enabled=false", "--quiet"]
+    if variant:
+        cmd += ["--variant", variant]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=str(ROOT))
+    if res.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{res.stderr.strip()[-1500:]}")
+    return time.perf_counter() - t0
+
+
+def compare(a: Path, b: Path) -> dict:
+    """Frames of two folders compared channel by channel (same file names expected)."""
+    from sensor.frames import read_frame
+    fa, fb = sorted(a.glob("frame_*.exr")), sorted(b.glob("frame_*.exr"))
+    if [p.name for p in fa] != [p.name for p in fb] or not fa:
+        raise RuntimeError(f"the two runs wrote different frame files ({len(fa)} and {len(fb)})")
+    equal, differing, pixels, worst = 0, 0, 0, 0.0
+    for pa, pb in zip(fa, fb):
+        x, y = read_frame(pa), read_frame(pb)
+        same = True
+        for ca, cb in ((x.phi, y.phi), (x.illuminance_lux, y.illuminance_lux)):
+            d = ca != cb
+            pixels += ca.size
+            if d.any():
+                same = False
+                differing += int(d.sum())
+                rel = np.abs(ca[d].astype(np.float64) - cb[d]) / np.maximum(np.abs(ca[d].astype(np.float64)),
+                                                                            np.finfo(np.float32).tiny)
+                worst = max(worst, float(rel.max()))
+        equal += same
+    return {"frames": len(fa), "frames_bitwise_equal": equal, "pixel_values_compared": pixels,
+            "pixel_values_differing": differing, "max_rel_diff": worst}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                 epilog="Writes repro.json and repro.md in --out.")
+    ap.add_argument("--scene", default="rotating_disk")
+    ap.add_argument("--variant", default=None, help="Mitsuba variant (default: the automatic choice)")
+    ap.add_argument("--spp", type=int, nargs="+", default=[64, 256, 1024])
+    ap.add_argument("--duration", type=float, default=0.004, help="camera seconds rendered per run (default 0.004)")
+    ap.add_argument("--out", default=str(HERE / "results" / "repro"))
+    a = ap.parse_args(argv)
+    from sensor.fileio import write_json_atomic, write_text_atomic
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for spp in a.spp:
+        lb = tuple(round(x, 2) for x in os.getloadavg())
+        with tempfile.TemporaryDirectory(prefix="r2s-repro-") as tmp:
+            walls = [_render(a.scene, spp, a.variant, a.duration, Path(tmp) / f"run{i}") for i in (1, 2)]
+            man = json.loads((Path(tmp) / "run1" / "frames.json").read_text())
+            row = {"scene": a.scene, "spp": spp, "wall_s": walls, "load_before": lb,
+                   "load_after": tuple(round(x, 2) for x in os.getloadavg()),
+                   "variant": man.get("render", {}).get("variant") or man.get("variant"),
+                   **compare(Path(tmp) / "run1", Path(tmp) / "run2")}
+        rows.append(row)
+        print(f"spp {spp}: {row['frames_bitwise_equal']}/{row['frames']} frames bitwise equal, "
+              f"{row['pixel_values_differing']} of {row['pixel_values_compared']} values differ, "
+              f"max rel diff {row['max_rel_diff']:.3g} ({row['variant']})", flush=True)
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "command": "python benchmarks/repro_check.py " +
+            " ".join(argv if argv is not None else sys.argv[1:])}
+    write_json_atomic(out / "repro.json", {"meta": meta, "rows": rows})
+    lines = ["# Two runs of the same render command", "", f"`{meta['command']}`, {meta['date']}", "",
+             "| variant | scene | spp | frames bitwise equal | values differing | max relative difference | "
+             "wall s (run 1, 2) | load before / after |", "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['variant']} | {r['scene']} | {r['spp']} | {r['frames_bitwise_equal']} / {r['frames']} | "
+              f"{r['pixel_values_differing']} / {r['pixel_values_compared']} | {r['max_rel_diff']:.3g} | "
+              f"{r['wall_s'][0]:.1f}, {r['wall_s'][1]:.1f} | {r['load_before']} / {r['load_after']} |" for r in rows]
+    write_text_atomic(out / "repro.md", "\n".join(lines) + "\n")
+    print(f"wrote {out / 'repro.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
