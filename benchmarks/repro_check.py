@@ -8,9 +8,11 @@ last bits. This measures by how much, per spp::
     python benchmarks/repro_check.py --variant cuda_ad_spectral --spp 64 256 1024 --out DIR
 
 For each spp it runs ``render2spike render SCENE --spp N`` twice (fixed keyframes, adaptive refinement
-off, fresh folders) and compares every frame's ``Phi`` and ``E`` channels: frames bitwise equal, pixels
-that differ, and the largest difference relative to the pixel's value. Writes ``repro.json`` and
-``repro.md`` in ``--out``.
+off, fresh folders) and compares every frame's ``Phi`` and ``E`` channels value by value: frames bitwise
+equal (both channels), values that differ (each channel's counted), and the largest difference relative
+to the value; and whether the two manifests list the same frames at the same times with the same
+reference light level (the light meter's estimate). Writes ``repro.json`` and ``repro.md`` in ``--out``
+after each spp (what was measured is kept if a later spp fails).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ def compare(a: Path, b: Path) -> dict:
     """Frames of two folders compared channel by channel (same file names expected)."""
     from sensor.frames import read_frame
     fa, fb = sorted(a.glob("frame_*.exr")), sorted(b.glob("frame_*.exr"))
+    ma, mb = (json.loads((f / "frames.json").read_text()) if (f / "frames.json").is_file() else {} for f in (a, b))
     if [p.name for p in fa] != [p.name for p in fb] or not fa:
         raise RuntimeError(f"the two runs wrote different frame files ({len(fa)} and {len(fb)})")
     equal, differing, pixels, worst = 0, 0, 0, 0.0
@@ -63,22 +66,52 @@ def compare(a: Path, b: Path) -> dict:
                                                                             np.finfo(np.float32).tiny)
                 worst = max(worst, float(rel.max()))
         equal += same
+    same_frames = [(e.get("file"), e.get("time_s")) for e in ma.get("frames", [])] == \
+        [(e.get("file"), e.get("time_s")) for e in mb.get("frames", [])]
     return {"frames": len(fa), "frames_bitwise_equal": equal, "pixel_values_compared": pixels,
-            "pixel_values_differing": differing, "max_rel_diff": worst}
+            "pixel_values_differing": differing, "max_rel_diff": worst,
+            "manifest_frames_equal": bool(same_frames and ma.get("frames")),
+            "reference_equal": ma.get("reference") == mb.get("reference") and "reference" in ma}
+
+
+def write_report(out: Path, meta: dict, rows: list[dict]) -> Path:
+    from sensor.fileio import write_json_atomic, write_text_atomic
+    write_json_atomic(out / "repro.json", {"meta": meta, "rows": rows})
+    lines = ["# Two runs of the same render command", "",
+             f"`{meta['command']}`, {meta['date']}, {meta['machine']}", "",
+             "| variant | scene | spp | frames bitwise equal | values differing | max relative difference | "
+             "manifest frames / reference equal | wall s (run 1, 2) | load before / after |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        load = " / ".join(", ".join(f"{x:.2f}" for x in r[k]) for k in ("load_before", "load_after"))
+        lines.append(f"| {r['variant']} | {r['scene']} | {r['spp']} | {r['frames_bitwise_equal']} / {r['frames']} | "
+                     f"{r['pixel_values_differing']} / {r['pixel_values_compared']} | {r['max_rel_diff']:.3g} | "
+                     f"{'yes' if r['manifest_frames_equal'] else 'NO'} / {'yes' if r['reference_equal'] else 'NO'} | "
+                     f"{r['wall_s'][0]:.1f}, {r['wall_s'][1]:.1f} | {load} |")
+    return write_text_atomic(out / "repro.md", "\n".join(lines) + "\n")
 
 
 def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
-                                 epilog="Writes repro.json and repro.md in --out.")
-    ap.add_argument("--scene", default="rotating_disk")
+                                 epilog="Writes repro.json and repro.md in --out (after each spp).")
+    ap.add_argument("--scene", default="rotating_disk", help="bundled scene name or scene YAML (default rotating_disk)")
     ap.add_argument("--variant", default=None, help="Mitsuba variant (default: the automatic choice)")
-    ap.add_argument("--spp", type=int, nargs="+", default=[64, 256, 1024])
+    ap.add_argument("--spp", type=int, nargs="+", default=[64, 256, 1024], help="samples per pixel (default 64 256 1024)")
     ap.add_argument("--duration", type=float, default=0.004, help="camera seconds rendered per run (default 0.004)")
     ap.add_argument("--out", default=str(HERE / "results" / "repro"))
     a = ap.parse_args(argv)
-    from sensor.fileio import write_json_atomic, write_text_atomic
+    if min(a.spp) < 1 or not a.duration > 0:
+        ap.error(f"every --spp must be >= 1 and --duration > 0 (got {a.spp}, {a.duration})")
+    if Path(a.scene).is_file():  # the renders run from the checkout's root: a relative path is made absolute
+        a.scene = str(Path(a.scene).resolve())
+    sys.path.insert(0, str(HERE))
+    from render_gpu import machine
+    mach = machine()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "command": "python benchmarks/repro_check.py " + " ".join(argv),
+            "machine": f"{mach['cpu']}, {mach['cores']} cores" + (f"; GPU {mach['gpu']}" if mach["gpu"] else "")}
     rows = []
     for spp in a.spp:
         lb = tuple(round(x, 2) for x in os.getloadavg())
@@ -86,23 +119,14 @@ def main(argv=None):
             walls = [_render(a.scene, spp, a.variant, a.duration, Path(tmp) / f"run{i}") for i in (1, 2)]
             man = json.loads((Path(tmp) / "run1" / "frames.json").read_text())
             row = {"scene": a.scene, "spp": spp, "wall_s": walls, "load_before": lb,
-                   "load_after": tuple(round(x, 2) for x in os.getloadavg()),
-                   "variant": man.get("render", {}).get("variant") or man.get("variant"),
+                   "load_after": tuple(round(x, 2) for x in os.getloadavg()), "variant": man.get("variant"),
                    **compare(Path(tmp) / "run1", Path(tmp) / "run2")}
         rows.append(row)
+        write_report(out, meta, rows)
         print(f"spp {spp}: {row['frames_bitwise_equal']}/{row['frames']} frames bitwise equal, "
               f"{row['pixel_values_differing']} of {row['pixel_values_compared']} values differ, "
-              f"max rel diff {row['max_rel_diff']:.3g} ({row['variant']})", flush=True)
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "command": "python benchmarks/repro_check.py " +
-            " ".join(argv if argv is not None else sys.argv[1:])}
-    write_json_atomic(out / "repro.json", {"meta": meta, "rows": rows})
-    lines = ["# Two runs of the same render command", "", f"`{meta['command']}`, {meta['date']}", "",
-             "| variant | scene | spp | frames bitwise equal | values differing | max relative difference | "
-             "wall s (run 1, 2) | load before / after |", "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['variant']} | {r['scene']} | {r['spp']} | {r['frames_bitwise_equal']} / {r['frames']} | "
-              f"{r['pixel_values_differing']} / {r['pixel_values_compared']} | {r['max_rel_diff']:.3g} | "
-              f"{r['wall_s'][0]:.1f}, {r['wall_s'][1]:.1f} | {r['load_before']} / {r['load_after']} |" for r in rows]
-    write_text_atomic(out / "repro.md", "\n".join(lines) + "\n")
+              f"max rel diff {row['max_rel_diff']:.3g}, manifest frames equal {row['manifest_frames_equal']}, "
+              f"reference equal {row['reference_equal']} ({row['variant']}; load {lb})", flush=True)
     print(f"wrote {out / 'repro.md'}")
     return 0
 

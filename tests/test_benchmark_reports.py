@@ -2,8 +2,10 @@
 
 ``benchmarks/render_gpu.py``: what the issue's goal line decides from (GPU samples/s over CPU samples/s at the
 same scene, resolution and spp, per CPU measured against) must pair the right rows and say met / not met
-correctly. ``benchmarks/repro_check.py``: its frame comparison must see a one-ulp difference and count it.
-``benchmarks/render_launch.py``: its table must carry every row, freeze outcome and load.
+correctly. ``benchmarks/repro_check.py``: its frame comparison must see a one-ulp difference in either
+channel and a different reference light level. ``benchmarks/render_launch.py``: a frame's split from its
+clock readings and kernel history, medians without the warm-up frames, and a table with each value under its
+own column, every freeze outcome and the load.
 """
 
 import importlib.util
@@ -77,48 +79,87 @@ def test_goal_lines_per_reference(tmp_path):
     assert saved["rows"] == rows
 
 
-def _frames(folder, values):
-    from sensor.frames import frame_filename, write_frame
+def _frames(folder, values, E=None, reference=None):
+    from sensor.frames import frame_filename, write_frame, write_manifest
     folder.mkdir()
+    entries = []
     for i, v in enumerate(values):
-        write_frame(folder / frame_filename(i), v, np.full_like(v, 3.0), time_s=i * 1e-3)
+        e = np.full_like(v, 3.0) if E is None else E[i]
+        write_frame(folder / frame_filename(i), v, e, time_s=i * 1e-3)
+        entries.append({"file": frame_filename(i), "time_s": i * 1e-3})
+    write_manifest(folder, *values[0].shape, entries, reference=reference)
 
 
-def test_repro_compare_counts_a_one_ulp_difference(tmp_path):
+def test_repro_compare_counts_one_ulp_differences_in_each_channel(tmp_path):
     import pytest
     mod = _module("repro_check")
     rng = np.random.default_rng(5)
     a = [rng.uniform(1.0, 2.0, (4, 6)).astype(np.float32) for _ in range(3)]
+    E = [rng.uniform(10.0, 20.0, (4, 6)).astype(np.float32) for _ in range(3)]
     b = [x.copy() for x in a]
-    b[1][2, 3] = np.nextafter(b[1][2, 3], np.float32(3.0))  # one ulp up, in one value of one frame
-    _frames(tmp_path / "x", a)
-    _frames(tmp_path / "y", a)
-    _frames(tmp_path / "z", b)
+    b[1][2, 3] = np.nextafter(b[1][2, 3], np.float32(3.0))  # one ulp up, in one Phi value of frame 1
+    E2 = [x.copy() for x in E]
+    E2[2][0, 0] = np.nextafter(E2[2][0, 0], np.float32(0.0))  # one ulp down, in one E value of frame 2
+    ref = {"raw_e_meter": 5.9}
+    _frames(tmp_path / "x", a, E, ref)
+    _frames(tmp_path / "y", a, E, ref)
+    _frames(tmp_path / "z", b, E2, {"raw_e_meter": 6.0})
     same = mod.compare(tmp_path / "x", tmp_path / "y")
     assert same == {"frames": 3, "frames_bitwise_equal": 3, "pixel_values_compared": 3 * 2 * 24,
-                    "pixel_values_differing": 0, "max_rel_diff": 0.0}
+                    "pixel_values_differing": 0, "max_rel_diff": 0.0, "manifest_frames_equal": True,
+                    "reference_equal": True}
     diff = mod.compare(tmp_path / "x", tmp_path / "z")
-    assert diff["frames_bitwise_equal"] == 2 and diff["pixel_values_differing"] == 1
-    ulp = float(np.spacing(a[1][2, 3])) / float(a[1][2, 3])  # one float32 ulp relative to the value
-    assert diff["max_rel_diff"] == pytest.approx(ulp, rel=1e-6)
+    assert diff["frames_bitwise_equal"] == 1 and diff["pixel_values_differing"] == 2
+    ulps = [float(np.spacing(a[1][2, 3])) / float(a[1][2, 3]),  # one float32 ulp relative to each value
+            float(np.spacing(np.nextafter(E[2][0, 0], np.float32(0.0)))) / float(E[2][0, 0])]
+    assert diff["max_rel_diff"] == pytest.approx(max(ulps), rel=1e-6)
+    assert diff["manifest_frames_equal"] and not diff["reference_equal"]
     sorted((tmp_path / "z").glob("frame_*.exr"))[-1].unlink()
     with pytest.raises(RuntimeError, match="different frame files"):
         mod.compare(tmp_path / "x", tmp_path / "z")
 
 
-def test_launch_table_has_every_row_and_freeze_outcome(tmp_path):
+def test_launch_frame_row_and_medians():
+    import pytest
     mod = _module("render_launch")
-    med = {k: 1.0 for k in ("wall_ms", "call_ms", "sync_ms", "trace_ms", "codegen_ms", "backend_ms", "exec_ms")}
+    JIT, MEMSET = "jit", "memset"  # stand-ins for Dr.Jit's KernelType values
+    hist = [{"type": JIT, "codegen_time": 0.3, "backend_time": 0.0, "execution_time": 0.2, "cache_hit": True},
+            {"type": JIT, "codegen_time": 0.1, "backend_time": 5.0, "execution_time": 0.4, "cache_hit": False},
+            {"type": MEMSET, "execution_time": 0.05}]
+    r = mod.frame_row(10.0, 10.001, 10.009, 10.012, hist, JIT)  # clock readings [s]
+    assert r["update_ms"] == pytest.approx(1.0) and r["call_ms"] == pytest.approx(8.0)
+    assert r["sync_ms"] == pytest.approx(3.0) and r["wall_ms"] == pytest.approx(12.0)
+    assert r["codegen_ms"] == pytest.approx(0.4) and r["backend_ms"] == pytest.approx(5.0)
+    assert r["exec_ms"] == pytest.approx(0.6) and r["other_kernels_ms"] == pytest.approx(0.05)
+    assert r["trace_ms"] == pytest.approx(8.0 - 0.4 - 5.0)  # the render call less kernel assembly and compile
+    assert r["kernels"] == 2 and r["cache_misses"] == 1
+    rows = [{"wall_ms": 100.0}, {"wall_ms": 90.0}, {"wall_ms": 3.0}, {"wall_ms": 5.0}, {"wall_ms": 4.0}]
+    assert mod.summarize(rows, 2) == {"wall_ms": 4.0}  # the two warm-up frames are not in the median
+    with pytest.raises(ValueError, match="no timed frames"):
+        mod.summarize(rows, 5)
+
+
+def test_launch_table_has_every_row_column_and_freeze_outcome(tmp_path):
+    mod = _module("render_launch")
+    med = {k: 1.0 + i for i, k in enumerate(mod.KEYS)}  # a distinct value per column
     base = {"date": "2026-11-26 12:00:00", "machine": "M", "load_before": [1.0, 2.0, 3.0],
             "load_after": [1.5, 2.0, 3.0], "variant": "cuda_ad_spectral", "scene": "s", "resolution": "32x48",
             "spp": 16, "median": dict(med, kernels=2), "samples_per_s": 1e7}
+    old = dict(base, median={k: v for k, v in base["median"].items() if k not in ("update_ms", "other_kernels_ms")})
     rows = [dict(base), dict(base, freeze={"works": False, "error": "RuntimeError: VarType mismatch"}),
             dict(base, spp=256, freeze={"works": True, "wall_ms_median": 0.5, "films_equal_unfrozen": 9,
-                                        "frames": 10})]
+                                        "frames": 10, "max_rel_diff_vs_unfrozen": 3e-7}), old]
     text = mod.write_md(tmp_path, rows).read_text()
     table = [ln for ln in text.splitlines() if ln.startswith("|")]
-    assert len(table) == 2 + 3
+    assert len(table) == 2 + 4
     assert len({ln.count("|") for ln in table}) == 1  # header, separator and rows have the same columns
-    assert "1.00, 2.00, 3.00 / 1.50, 2.00, 3.00" in table[2]
-    assert table[2].endswith("| - |") and "fails: RuntimeError: VarType mismatch" in table[3]
-    assert "works: 0.50 ms, 9/10 films equal" in table[4]
+    head = [c.strip() for c in table[0].strip("|").split("|")]
+    cells = [c.strip() for c in table[2].strip("|").split("|")]
+    for i, k in enumerate(mod.KEYS):  # each value under its own column
+        assert cells[head.index(k)] == f"{1.0 + i:.3f}"
+    assert cells[head.index("load before/after")] == "1.00, 2.00, 3.00 / 1.50, 2.00, 3.00"
+    assert cells[head.index("freeze")] == "-"
+    assert "fails: RuntimeError: VarType mismatch" in table[3]
+    assert "works: 0.50 ms, 9/10 films equal, max rel. diff. 3e-07" in table[4]
+    old_cells = [c.strip() for c in table[5].strip("|").split("|")]
+    assert old_cells[head.index("update_ms")] == "-" and old_cells[head.index("wall_ms")] == "1.000"

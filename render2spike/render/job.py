@@ -26,8 +26,8 @@ The measurement itself is deterministic (see
 :meth:`.renderer.SceneRenderer.measure_reference`), so two separate renders of
 one scene are identical too, to float round-off (at high spp, e.g. 121, Mitsuba's
 LLVM backend was seen to differ in the last bit of 1 of 6,144 pixels in 2 of 10 frames,
-run to run; at 16 spp no difference was seen; on an H100, 1.4-64 % of the values differed by a few
-ulps at 64-1024 spp, ``benchmarks/repro_check.py``). If the scene, a setting, the profile or
+run to run; at 16 spp no difference was seen; on an H100, 1.4-64 % of the values differed by up to
+2-16 float32 ulps at 64-1024 spp, ``benchmarks/repro_check.py``). If the scene, a setting, the profile or
 the Mitsuba variant changed (a different hash), the folder is refused, or with
 ``overwrite=True`` emptied of our files and rendered anew: frames of two scenes
 are never mixed.
