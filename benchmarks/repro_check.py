@@ -116,7 +116,11 @@ def main(argv=None):
     for spp in a.spp:
         lb = tuple(round(x, 2) for x in os.getloadavg())
         with tempfile.TemporaryDirectory(prefix="r2s-repro-") as tmp:
-            walls = [_render(a.scene, spp, a.variant, a.duration, Path(tmp) / f"run{i}") for i in (1, 2)]
+            try:
+                walls = [_render(a.scene, spp, a.variant, a.duration, Path(tmp) / f"run{i}") for i in (1, 2)]
+            except RuntimeError as exc:  # the render's own message (file, field, what was expected)
+                print(f"repro_check.py: error at spp {spp}: {exc}", file=sys.stderr)
+                return 2
             man = json.loads((Path(tmp) / "run1" / "frames.json").read_text())
             row = {"scene": a.scene, "spp": spp, "wall_s": walls, "load_before": lb,
                    "load_after": tuple(round(x, 2) for x in os.getloadavg()), "variant": man.get("variant"),
