@@ -24,7 +24,7 @@ Per frame (medians over ``--frames`` frames, after ``--warm`` frames), in ms:
   ``drjit.freeze`` would skip on a replay (``set_time`` is outside it). Where ``sync_ms`` is about
   ``exec_ms`` (CUDA), a frame is update + trace + codegen + exec plus a copy.
 
-Recording the kernel history costs each launch a little (0.1-0.2 ms on a CPU), so ``wall_ms`` is a bit
+Recording the kernel history costs each launch a little (1-10 % a launch, measured on the CPU), so ``wall_ms`` is a bit
 above a bare loop's frame (``benchmarks/render_gpu.py``).
 
 ``--freeze`` also tries ``drjit.freeze`` on the render call, in a child process that is killed after
