@@ -103,12 +103,13 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
 
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
-                 dat: bool = False, variant: str | None = None, log=print) -> dict:
+                 dat: bool = False, variant: str | None = None, log=print, launch: str = "film") -> dict:
     """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary.
 
     ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). ``variant``: the Mitsuba
     variant, as :func:`render2spike.render.backend.mitsuba` takes it (None: ``$RENDER2SPIKE_VARIANT``, else the
-    automatic choice; ``"auto"``: the automatic choice). Rerunning into ``out``
+    automatic choice; ``"auto"``: the automatic choice). ``launch``: how each frame's render is launched
+    (``film`` or ``frozen``, :func:`render2spike.render.job.render_scene`). Rerunning into ``out``
     resumes the render; an ``out`` whose summary records another scene, model, seed or profile is refused
     (InputError) unless ``overwrite``.
     """
@@ -132,7 +133,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         except (OSError, ValueError):
             old = {}
         from .render import backend
-        now = {"scene_hash": sc.content_hash(settings_of(sc, backend.mitsuba(variant).variant())), "model": model,
+        now = {"scene_hash": sc.content_hash(settings_of(sc, backend.mitsuba(variant).variant(), launch)), "model": model,
                "seed": seed, "profile": sc.profile.name}
         diff = [k for k in now if old.get(k) != now[k]]
         if diff:
@@ -145,7 +146,8 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
                              + "); pass --overwrite to replace it, or choose another --out" + hint, path=out)
     created = not out.exists()
     try:
-        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, variant=variant, log=log)
+        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, variant=variant, log=log,
+                           launch=launch)
     except BaseException:
         if created:  # the render left nothing (it removes a frames folder it wrote nothing into): no empty OUT
             import contextlib
@@ -194,6 +196,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         "frames_rendered_now": res.n_rendered,
         "spp": res.spp,
         "variant": m.get("variant"),
+        "launch": m.get("launch", "film"),
         "render_noise_ratio_mean": (m.get("render_noise_ratio") or {}).get("mean"),
         "intervals": T,
         "spikes": n_spk,

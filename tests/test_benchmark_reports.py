@@ -163,3 +163,27 @@ def test_launch_table_has_every_row_column_and_freeze_outcome(tmp_path):
     assert "works: 0.50 ms, 9/10 films equal, max rel. diff. 3e-07" in table[4]
     old_cells = [c.strip() for c in table[5].strip("|").split("|")]
     assert old_cells[head.index("update_ms")] == "-" and old_cells[head.index("wall_ms")] == "1.000"
+
+
+def test_frozen_launch_report_pairs_rounds_and_columns():
+    # benchmarks/render_frozen.py: per round film / frozen, the job against the film's bare launch and against each
+    # launch's own, every value under its own column, the load range over every child
+    mod = _module("render_frozen")
+
+    def row(ms, lb=1.0, la=1.5, rec=None):
+        return {"median_ms": ms, "height": 32, "width": 48, "recordings": rec, "load_before": [lb], "load_after": [la]}
+    p = {"scene": "plane", "size": "window", "spp": 16,
+         "film": [row(4.0), row(6.0)], "frozen": [row(2.0, rec=3), row(1.5, lb=0.5, la=2.5)],
+         "pipeline_film": [row(5.0), row(6.6)], "pipeline_frozen": [row(3.0), row(3.0)]}
+    res = {"when": "now", "machine": "m", "rounds": 2, "frames": 8, "warm": 1, "points": [p],
+           "jobs": [{"scene": "plane", "launch": "frozen", "wall_s": 1.5, "frames": 3, "spp": 35,
+                     "render_noise_ratio": 0.197, "load_before": [0.7], "load_after": [0.9]}]}
+    text = mod.report(res)
+    launch_row = [ln for ln in text.splitlines() if ln.startswith("| plane | 32 x 48 | 16 | 4.00")][0]
+    cells = [c.strip() for c in launch_row.strip("|").split("|")]
+    assert cells[3:8] == ["4.00, 6.00", "2.00, 1.50", "2.00, 4.00", "3", "0.50-2.50"]
+    job_row = [ln for ln in text.splitlines() if ln.startswith("| plane | 32 x 48 | 16 | 5.00")][0]
+    cells = [c.strip() for c in job_row.strip("|").split("|")]
+    # frozen job / bare film launch, film job / film launch, frozen job / frozen launch
+    assert cells[3:8] == ["5.00, 6.60", "3.00, 3.00", "0.75, 0.50", "1.25, 1.10", "1.50, 2.00"]
+    assert "| plane | frozen | 1.50 | 3 | 35 | 0.197 | 0.70-0.90 |" in text

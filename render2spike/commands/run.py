@@ -55,7 +55,7 @@ def run(args) -> int:
     s = run_pipeline(args.scene, args.out, sets=scene_sets(args), lux=args.lux, duration_s=args.duration,
                      profile=args.profile, model=args.model, seed=args.seed, overwrite=args.overwrite,
                      progress=not args.quiet, preview_window=args.preview_window, dat=args.dat,
-                     variant=variant_of(args))
+                     variant=variant_of(args), launch=args.launch)
     print(f"run: {s['scene']} at {s['illuminance_lux']:g} lux: {s['frames']} frames, {s['intervals']} intervals, "
           f"{s['spikes']} spikes ({s['spike_rate_hz']:.1f} Hz per pixel); {s['seconds']['total']:.1f} s -> {args.out}")
     print(f"run: preview {s['files']['png']}, {s['files']['gif']}; summary {args.out}/summary.md")

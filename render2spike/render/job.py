@@ -3,7 +3,7 @@
 Output (the frame contract of :mod:`sensor.frames`)
 ---------------------------------------------------
 ``OUT/frame_TTTTTTTT.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
-``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``,
+``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``, ``launch``,
 ``scene_hash``, ``target_lux``, ``made_by``) and ``OUT/frames.json``, written
 last, when every frame is done. ``TTTTTTTT`` is the frame's tick on the finest
 time grid (``time_s = duration_s * tick / n_ticks``), zero-padded: file names
@@ -27,8 +27,9 @@ The measurement itself is deterministic (see
 one scene are identical too, to float round-off (at high spp, e.g. 121, Mitsuba's
 LLVM backend was seen to differ in the last bit of 1 of 6,144 pixels in 2 of 10 frames,
 run to run; at 16 spp no difference was seen; on an H100, 1.4-64 % of the values differed by up to
-2-16 float32 ulps at 64-1024 spp, ``benchmarks/repro_check.py``). If the scene, a setting, the profile or
-the Mitsuba variant changed (a different hash), the folder is refused, or with
+2-16 float32 ulps at 64-1024 spp, ``benchmarks/repro_check.py``; the frozen launch sums each pixel's samples
+in a fixed order, see :mod:`.frozen`). If the scene, a setting, the profile,
+the Mitsuba variant or the launch changed (a different hash), the folder is refused, or with
 ``overwrite=True`` emptied of our files and rendered anew: frames of two scenes
 are never mixed.
 
@@ -202,21 +203,29 @@ def _write_state(out: Path, state: dict) -> None:
 
 
 
-def settings_of(scene: Scene, variant: str) -> dict:
+def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     """Everything besides the scene data that changes the frames (part of the hash)."""
     # variant_family keeps GPU (cuda) and CPU (llvm/scalar) frames apart; procedure 2: exact spp in one
     # launch per frame, fitted noise budget, curvature-based keyframes (frames of procedure 1 are not resumed);
     # frames_format 2: frames named by tick, light level stored in the render state; procedure 3 (auto spp
     # only): the budget's answer snapped on measured pairs (noise.snap_to_measured), which can choose another
     # spp than procedure 2 did, so a folder of the older budget is not taken for this one's output
+    # launch (renderer.LAUNCHES): the frozen launch makes other Monte Carlo estimates than the film's, so its
+    # frames get their own hash; the film launch adds nothing (the hashes of folders made before it stay valid)
     auto = scene.render.get("spp") == "auto"
-    return {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
-            "procedure": 3 if auto else 2}
+    out = {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
+           "procedure": 3 if auto else 2}
+    if launch != "film":
+        out["launch"] = launch
+    return out
 
 
 def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
-                 log=print) -> RenderResult:
+                 log=print, launch: str = "film") -> RenderResult:
     """Render ``scene`` into the frames folder ``out`` (resuming if possible). See the module docstring.
+
+    ``launch``: how each render is launched (:data:`.renderer.LAUNCHES`: ``film``, the default, or
+    ``frozen``, :mod:`.frozen`); part of the folder's hash, so a folder is resumed only by the same launch.
 
     Raises :class:`sensor.errors.InputError` (before anything is written) for a folder of another scene
     (without ``overwrite``), a folder another render is writing into, or a scene with no usable light.
@@ -230,7 +239,7 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
     wrote = {"any": False}
     try:
         sweep_parts(out, log=log)
-        return _render_locked(scene, out, overwrite, progress, variant, log, wrote)
+        return _render_locked(scene, out, overwrite, progress, variant, log, wrote, launch)
     except BaseException:
         lock.release()
         if created and not wrote["any"]:  # nothing of ours to keep: leave no empty folder behind
@@ -243,11 +252,15 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         lock.release()
 
 
-def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, variant, log, wrote) -> RenderResult:
+def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, variant, log, wrote,
+                   launch: str = "film") -> RenderResult:
     t_start = time.perf_counter()
+    from .renderer import LAUNCHES
+    if launch not in LAUNCHES:
+        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
     mi = backend.mitsuba(variant)
     variant = mi.variant()
-    scene_hash = scene.content_hash(settings_of(scene, variant))
+    scene_hash = scene.content_hash(settings_of(scene, variant, launch))
     manifest = _read_json(out / MANIFEST_NAME)
     manifest = manifest if isinstance(manifest, dict) else None
     state = load_state(out)
@@ -259,6 +272,10 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             if old_variant and backend.variant_family(old_variant) != backend.variant_family(variant):
                 hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
                         f"--variant {old_variant} to resume it.")
+            old_launch = (manifest or {}).get("launch") or (state or {}).get("launch") or "film"
+            if old_launch != launch:
+                hint += (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
+                         f"pass --launch {old_launch} to resume it.")
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
                              f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out."
                              + hint, path=out)
@@ -281,13 +298,13 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         state = None
     if state is None:
         state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "variant": variant,
-                 "frames": {}, "complete": False}
+                 "launch": launch, "frames": {}, "complete": False}
     # keep only frames whose files exist
     state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
     n_resumed = len(state["frames"])
 
     from .renderer import SceneRenderer
-    rnd = SceneRenderer(scene, variant, calibration=state.get("calibration"))
+    rnd = SceneRenderer(scene, variant, calibration=state.get("calibration"), launch=launch)
     state["calibration"] = rnd.calibration
     rcfg = scene.render
     ncfg = rcfg["noise"]
@@ -347,7 +364,8 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             bar.update(target - bar.n)
     n_rendered = 0
     ratios = []
-    made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name, "variant": variant})
+    made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name, "variant": variant,
+                          "launch": launch})
 
     def get_frame(tick: int):
         nonlocal n_rendered
@@ -372,7 +390,8 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                              f"{r}, column {c}: check the scene's light and material values", path=scene.path)
         name = tick_filename(tick)
         attrs = {"spp": int(spp), "render_noise_ratio": float(ratio), "render_noise_window_intervals": W,
-                 "variant": variant, "scene_hash": scene_hash, "target_lux": float(scene.illuminance_lux),
+                 "variant": variant, "launch": launch, "scene_hash": scene_hash,
+                 "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": made_by, "scene": scene.name}
         state["frames"][key] = {"file": name, "time_s": t_s, "render_noise_ratio": float(ratio)}
         # written in the background while the next frame renders; its journal line follows the file. The
@@ -429,6 +448,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                            "fill_factor": prof.fill_factor},
                 "profile": {"name": prof.name, "spec": scene.camera["profile"], "height": prof.height, "width": prof.width},
                 "variant": variant,
+                "launch": launch,
                 "spp": spp,
                 "noise_budget": budget,
                 "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,

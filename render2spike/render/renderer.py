@@ -26,10 +26,15 @@ from sensor.errors import InputError
 from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
-from .builder import SAMPLER, build_dict, to_transform
+from .builder import SAMPLER, SENSOR_KEY, build_dict, to_transform
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
                          warn_if_reference_shadowed)
 from .scene import Scene, spectrum_curve
+
+
+#: how a frame is launched: ``film`` (the integrator's own render into Mitsuba's ``specfilm``; the default)
+#: or ``frozen`` (:mod:`.frozen`: recorded once with ``drjit.freeze``, replayed after)
+LAUNCHES = ("film", "frozen")
 
 
 def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
@@ -50,14 +55,30 @@ class SceneRenderer:
         A light-level measurement made earlier (:meth:`measure_reference`, stored in a
         frames folder's render state): reused instead of measuring again, so frames of a
         resumed render share one emitter scale.
+    launch : {"film", "frozen"}
+        How each render is launched (:data:`LAUNCHES`): ``film`` calls the integrator's ``render``
+        into Mitsuba's spectral film; ``frozen`` records the launch once with ``drjit.freeze`` and
+        replays it (:mod:`.frozen`): the same channels in the same units, another Monte Carlo
+        estimate, without the per-launch tracing on the host.
     """
 
-    def __init__(self, scene: Scene, variant: str | None = None, calibration: dict | None = None):
+    def __init__(self, scene: Scene, variant: str | None = None, calibration: dict | None = None,
+                 launch: str = "film"):
+        if launch not in LAUNCHES:
+            raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="launch")
         self.scene = scene
+        self.launch_kind = launch
         self.mi = mi = backend.mitsuba(variant)
         self.variant = mi.variant()
         t0 = time.perf_counter()
         d, self.motions = build_dict(mi, scene)
+        cam_dict = d[SENSOR_KEY]
+        if launch == "frozen":  # the camera keeps its pose and sampler; its film is never rendered (frozen.py)
+            film = cam_dict["film"]
+            curves = {c: tuple(np.array([float(x) for x in film[c][k].split(",")]) for k in ("wavelengths", "values"))
+                      for c in ("Phi", "E")}
+            cam_dict["film"] = {"type": "hdrfilm", "width": film["width"], "height": film["height"],
+                                "rfilter": {"type": "box"}}
         try:
             self.mi_scene = mi.load_dict(d, optimize=False)
         except Exception as exc:
@@ -67,6 +88,17 @@ class SceneRenderer:
         self._integrator = self.mi_scene.integrator()
         import drjit
         self._dr = drjit
+        cam_motion, cam_shape = self.motions[SENSOR_KEY]
+        self._cam_m = cam_motion.matrix(0.0) @ cam_shape  # the camera's pose at the time set (frozen launch)
+        self._frozen = None
+        if launch == "frozen":
+            if not drjit.is_jit_v(mi.Float):
+                raise InputError(f"the frozen launch needs an LLVM or CUDA variant of Mitsuba (drjit.freeze); "
+                                 f"this run uses '{self.variant}': choose launch 'film' for it", field="launch")
+            from .frozen import FrozenLaunch
+            self._frozen = FrozenLaunch(mi, drjit, self.mi_scene, scene.profile.height, scene.profile.width,
+                                        cam_dict["fov"], cam_dict["near_clip"], cam_dict["far_clip"], curves,
+                                        SAMPLER)
         self._moving = {}
         self._t_set = None  # the time the moving objects are at (set_time)
         self.n_launches = 0  # render launches so far (benchmarks count the verification launches with it)
@@ -123,6 +155,8 @@ class SceneRenderer:
         mi = self.mi
         for key, (kind, pkey, motion, shape_m, local) in self._moving.items():
             m = motion.matrix(t_s) @ shape_m
+            if key == SENSOR_KEY:
+                self._cam_m = m
             if kind == "to_world":
                 self.params[pkey] = to_transform(mi, m)
             else:
@@ -153,13 +187,21 @@ class SceneRenderer:
         flow through it; nothing here is differentiated, and the wrapper's tracing cost (about 0.1 ms a
         launch, 2-3 % of a 32 x 48 frame at 16 spp) is a fixed cost of every frame. The film is bitwise the
         one ``mi.render`` returns for the same seed and spp (tested).
+
+        With ``launch="frozen"`` it is the recorded launch of :mod:`.frozen` instead (same channels and
+        units, another Monte Carlo estimate).
         """
+        if self._frozen is not None:
+            return self._frozen.launch(seed, spp, self._cam_m)
         with self._dr.suspend_grad():
             return self._integrator.render(self.mi_scene, self.sensor, seed=seed, spp=spp, develop=True,
                                            evaluate=False)
 
     def channels(self, img) -> tuple[np.ndarray, np.ndarray]:
         """(Phi_raw, E_raw), float64 (H, W), of a film tensor from :meth:`launch` (waits for its kernel)."""
+        if self._frozen is not None:
+            ch = self._frozen.channels(img)
+            return ch["Phi"], ch["E"]
         arr = np.asarray(img, dtype=np.float64)
         names = self._channel_names()
         return arr[..., names.index("Phi")], arr[..., names.index("E")]

@@ -44,20 +44,21 @@ def expected_e_per_lux(qe, step_nm=None):
     return num / den
 
 
-def test_lambertian_plane_E_and_Phi(tmp_path, write_scene, z):
+@pytest.mark.parametrize("launch", ["film", "frozen"])
+def test_lambertian_plane_E_and_Phi(tmp_path, write_scene, z, launch):
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.frames import read_frames
 
     sc = load_scene(write_scene(), ["render.spp=64"])
-    res = render_scene(sc, tmp_path / "frames", progress=False, log=lambda *a: None)
+    res = render_scene(sc, tmp_path / "frames", progress=False, log=lambda *a: None, launch=launch)
     seq = read_frames(res.out)
     assert len(seq) == 3  # static scene: the 200 Hz base grid over 10 ms, no refinement
     frames = [seq.read(i) for i in range(len(seq))]
     for fr in frames:  # the frame contract's header
-        for key in ("spp", "render_noise_ratio", "variant", "scene_hash", "target_lux", "made_by", "units"):
+        for key in ("spp", "render_noise_ratio", "variant", "launch", "scene_hash", "target_lux", "made_by", "units"):
             assert key in fr.header, key
-        assert fr.header["target_lux"] == LUX and fr.phi.dtype == np.float32
+        assert fr.header["target_lux"] == LUX and fr.phi.dtype == np.float32 and fr.header["launch"] == launch
     H, W = frames[0].phi.shape
     x = (np.arange(W) + 0.5 - W / 2) * PITCH
     y = (np.arange(H) + 0.5 - H / 2) * PITCH

@@ -1,0 +1,238 @@
+"""The frozen launch: one frame's render recorded once with ``drjit.freeze`` and replayed after.
+
+Why. Every ``mi.render`` call traces the whole integrator anew on the host (1.4 ms of a 3.7 ms
+frame at 32 x 48 and 16 spp on the 2-core CPU; 96 % of a small frame on a GPU), and
+``drjit.freeze``, which records a launch once and replays its kernels, fails on Mitsuba 3.9.1 as
+soon as a perspective camera with a ``specfilm`` is among its inputs ("VarType mismatch 8 != 14",
+even for a function that does nothing with it), and ``specfilm`` allocates its image block inside
+every render, which a recording cannot replay (mitsuba3 issue 1810; the fix there, PR 1816, went
+into ``hdrfilm`` only).
+
+What. The scene is loaded with a plain ``hdrfilm`` camera (never rendered), and this module does
+what the camera and the ``specfilm`` did, in Dr.Jit, around the scene integrator's ``sample``:
+
+1. **Primary rays** of Mitsuba's ``perspective`` camera (pinhole, ``fov_axis`` x): the sample
+   position ``(sx, sy)`` in [0, 1]^2 of the film gives the camera-space direction
+   ``((1 - 2 sx) t, (1 - 2 sy) t H / W, 1)``, ``t = tan(fov_x / 2)``, moved by the camera's
+   ``to_world``; the origin is put on the near clip plane as Mitsuba does. The sampler's
+   dimensions are drawn in Mitsuba's order (pixel position, then wavelength).
+2. **Wavelengths**: four per sample, stratified (``u + i/4``), each through a tabulated inverse
+   distribution: ``M`` = :data:`N_QUANTILES` wavelengths ``lambda_j`` that cut the summed film
+   responses (piecewise linear on a 1 nm grid) into equal parts; ``u`` in ``[j/M, (j+1)/M)``
+   falls uniformly in ``[lambda_j, lambda_(j+1))``, so the density drawn from is
+   ``p = 1 / (M (lambda_(j+1) - lambda_j))`` there: two gathers a wavelength, where a binary search
+   of the cumulative table took ten (and the frame twice as long). Each channel then gets
+   ``mean_i srf_c(lambda_i) L(lambda_i) / p(lambda_i)``: an unbiased estimate of
+   ``int srf_c(lambda) L(lambda) d lambda``, the quantity ``specfilm`` estimates (with its own
+   density). Same expectation, another Monte Carlo estimate: frames are not bitwise those of the
+   film launch.
+3. **Per-pixel sums** with ``drjit.block_reduce`` over each pixel's ``spp`` consecutive samples
+   (box filter: every sample lands in its own pixel, weight 1), divided by ``spp``. No atomic
+   adds: the sum's order is fixed, so a GPU gives the same frame on every run.
+
+The result is the pair of raw channels (``Phi``, ``E``) that the film launch gives, in the same
+units, so :mod:`.photometry` applies unchanged. :class:`FrozenLaunch` keeps one frozen function;
+``frozen=False`` runs the same function without freezing (the tests hold the two bitwise equal).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: spacing of the response tables [nm]
+GRID_STEP_NM = 1.0
+#: equal-probability parts of the wavelength density (``lambda_j`` table of ``N_QUANTILES + 1`` points)
+N_QUANTILES = 4096
+
+
+def response_tables(curves: dict[str, tuple[np.ndarray, np.ndarray]], step_nm: float = GRID_STEP_NM,
+                    n_quantiles: int = N_QUANTILES):
+    """The film responses on one regular grid, and the wavelength density drawn from.
+
+    ``curves``: ``{channel: (wavelengths [nm], values)}``, each a piecewise-linear response (zero
+    outside its range), as handed to ``specfilm``. Knots off the grid would be smoothed by it:
+    refused.
+
+    Returns ``(lambda0_nm, step_nm, tables, quantiles)``: ``tables[channel]`` the responses at
+    ``lambda0 + k step`` (float64, n + 1 points); ``quantiles`` (``n_quantiles + 1`` points [nm]) the
+    wavelengths below which ``j / n_quantiles`` of the summed responses' integral lies (their
+    cumulative integral taken per 1 nm bin, linear inside it). Every wavelength where a response is
+    above zero lies in a part of non-zero width.
+    """
+    lo = min(float(wl[0]) for wl, _ in curves.values())
+    hi = max(float(wl[-1]) for wl, _ in curves.values())
+    n = int(round((hi - lo) / step_nm))
+    grid = lo + step_nm * np.arange(n + 1)
+    tables = {}
+    for name, (wl, v) in curves.items():
+        wl = np.asarray(wl, np.float64)
+        off = (wl - lo) / step_nm
+        if not np.allclose(off, np.round(off), rtol=0, atol=1e-9):
+            raise ValueError(f"response '{name}' has knots off the {step_nm:g} nm grid from {lo:g} nm")
+        tables[name] = np.interp(grid, wl, np.maximum(np.asarray(v, np.float64), 0.0), left=0.0, right=0.0)
+    total = sum(tables.values())
+    w = 0.5 * (total[:-1] + total[1:]) * step_nm  # exact integral of the piecewise-linear sum per bin
+    if not w.sum() > 0:
+        raise ValueError("the film responses are zero everywhere")
+    cdf = np.concatenate([[0.0], np.cumsum(w)]) / w.sum()
+    cdf[-1] = 1.0
+    quantiles = np.interp(np.arange(n_quantiles + 1) / n_quantiles, cdf, grid)
+    return lo, step_nm, tables, quantiles
+
+
+def _root(exc: BaseException) -> BaseException:
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    return exc
+
+
+class FrozenLaunch:
+    """Render one frame's raw channels with a recorded (frozen) launch; see the module docstring.
+
+    Parameters
+    ----------
+    mi, dr : the loaded ``mitsuba`` (variant set) and ``drjit`` modules.
+    mi_scene : the scene, loaded with a plain (``hdrfilm``) camera: it is a frozen input.
+    height, width : film size [px].
+    fov_x_deg : horizontal field of view [deg] (the camera dict's ``fov``).
+    near_clip, far_clip : [m], as the camera's.
+    curves : ``{channel: (wavelengths [nm], response)}``, the film's responses (``Phi``, ``E``).
+    sampler_type : Mitsuba sampler plugin (the camera's).
+    frozen : False runs the same function without ``drjit.freeze`` (a reference for tests).
+    """
+
+    def __init__(self, mi, dr, mi_scene, height: int, width: int, fov_x_deg: float, near_clip: float,
+                 far_clip: float, curves: dict, sampler_type: str, frozen: bool = True):
+        self.mi, self.dr = mi, dr
+        self.scene = mi_scene
+        self.height, self.width = int(height), int(width)
+        self.names = list(curves)
+        lo, step, tables, quantiles = response_tables(curves)
+        self._lo, self._step, self._nbins = float(lo), float(step), len(tables[self.names[0]]) - 1
+        self._nq = len(quantiles) - 1
+        self._tables = [mi.Float(tables[c].astype(np.float32)) for c in self.names]
+        self._quantiles = mi.Float(quantiles.astype(np.float32))
+        self._tan = float(np.tan(np.radians(float(fov_x_deg)) / 2.0))
+        self._near, self._far = float(near_clip), float(far_clip)
+        self._sampler = mi.load_dict({"type": sampler_type, "sample_count": 1})
+        self._integrator = mi_scene.integrator()
+        self.frozen = bool(frozen)
+        self._fn = dr.freeze(self._launch) if self.frozen else self._launch
+        self._collected = not self.frozen
+
+    @property
+    def n_recordings(self) -> int:
+        """Recordings the frozen function made so far (one per sample count, then replays); 0 unfrozen."""
+        return int(getattr(self._fn, "n_recordings", 0))
+
+    def sample_count(self, spp: int) -> int:
+        """The samples per pixel the sampler takes for ``spp`` (a stratified one rounds up)."""
+        s = self._sampler.clone()
+        s.set_sample_count(int(spp))
+        return int(s.sample_count())
+
+    def launch(self, seed: int, spp: int, cam_to_world: np.ndarray):
+        """Start the render at ``spp`` samples per pixel; -> per-channel sums (Dr.Jit arrays, H*W each).
+
+        ``cam_to_world``: the camera's 4 x 4 pose (its ``to_world``). :meth:`channels` waits for the
+        result and returns the channels as arrays.
+        """
+        mi = self.mi
+        spp = self.sample_count(spp)
+        m = mi.Transform4f(np.asarray(cam_to_world, np.float64).tolist())
+        self.dr.make_opaque(m)  # inputs, not constants of the recording: one recording serves every pose and seed
+        if not self._collected:  # scenes with the spectral film that are garbage not yet collected (e.g. the
+            import gc            # light meter's, in a reference cycle) would break the first recording
+            gc.collect()
+            self._collected = True
+        try:
+            seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
+            out = self._fn(self.scene, seed_v, m, spp, self._tables, self._quantiles)
+        except RuntimeError as exc:
+            if not self.frozen:
+                raise
+            from sensor.errors import DependencyError
+            raise DependencyError(
+                "the frozen launch failed: Dr.Jit could not record or replay the render "
+                f"({' '.join(str(_root(exc)).split())[:200]}). Mitsuba 3.9.1 cannot freeze a function while "
+                "a camera with a spectral film ('specfilm') exists anywhere in the process (mitsuba3 issue "
+                "1810): free other scenes rendered with the film launch first, or render with --launch film "
+                "(SceneRenderer(..., launch='film')). This renderer cannot be used further.") from exc
+        return spp, out
+
+    def channels(self, launched) -> dict[str, np.ndarray]:
+        """``{channel: float64 (H, W)}``: the per-pixel means of a :meth:`launch` (waits for it)."""
+        spp, out = launched
+        h, w = self.height, self.width
+        return {c: np.asarray(x, dtype=np.float64).reshape(h, w) / spp for c, x in zip(self.names, out)}
+
+    # --------------------------------------------------------- the recorded function
+    def _launch(self, scene, seed, m, spp, tables, quantiles):
+        mi, dr = self.mi, self.dr
+        h, w = self.height, self.width
+        n = h * w * spp
+        sampler = self._sampler.clone()
+        sampler.set_sample_count(spp)
+        sampler.set_samples_per_wavefront(spp)
+        sampler.seed(seed, n)
+        idx = dr.arange(mi.UInt32, n) // spp  # the sample's pixel: spp consecutive samples each
+        py = idx // w
+        px = idx - py * w
+        pos = mi.Vector2f(mi.Float(px), mi.Float(py)) + sampler.next_2d()  # Mitsuba's order: position first
+        u = sampler.next_1d()  # ... then the wavelength
+        lam, inv_p = self.wavelengths(u, quantiles)
+        o, d, maxt = self.primary_rays(m, mi.Vector2f(pos.x * (1.0 / w), pos.y * (1.0 / h)))
+        ray = mi.Ray3f(o, d, maxt, 0.0, mi.UnpolarizedSpectrum(*lam))
+        L, _, _ = self._integrator.sample(scene, sampler, mi.RayDifferential3f(ray), None, True)
+        accs = []
+        for tab in tables:
+            acc = mi.Float(0.0)
+            for i in range(4):
+                acc += self.response(tab, lam[i]) * L[i] * inv_p[i]
+            accs.append(acc * 0.25)
+        dr.eval(*accs)  # one kernel for all channels (each sum alone would trace the paths again)
+        return [dr.block_reduce(dr.ReduceOp.Add, a, spp) for a in accs]
+
+    # --------------------------------------------------------- its parts (also tested on their own)
+    def primary_rays(self, m, film_pos):
+        """Rays of the pinhole camera at pose ``m`` through film positions ``film_pos`` in [0, 1]^2.
+
+        What Mitsuba's ``perspective`` sensor (``fov_axis`` x) computes: the camera-space direction
+        ``((1 - 2 x) t, (1 - 2 y) t H / W, 1)`` normalised, ``t = tan(fov_x / 2)``, turned by ``m``; the
+        origin moved from the camera's centre to the near clip plane along the ray. -> (origin,
+        direction, maxt) [m]."""
+        mi, dr = self.mi, self.dr
+        h, w = self.height, self.width
+        d_cam = dr.normalize(mi.Vector3f((1.0 - 2.0 * film_pos.x) * self._tan,
+                                         (1.0 - 2.0 * film_pos.y) * (self._tan * h / w), 1.0))
+        d = dr.normalize(m @ d_cam)
+        inv_z = dr.rcp(d_cam.z)
+        near_t = self._near * inv_z
+        return m @ mi.Point3f(0.0, 0.0, 0.0) + d * near_t, d, self._far * inv_z - near_t
+
+    def wavelengths(self, u, quantiles):
+        """Four stratified wavelengths [nm] from one uniform ``u`` and their 1 / density [nm].
+
+        ``u + i / 4`` (wrapped into [0, 1)) picks part ``j`` of the quantile table and a uniform point
+        in it; that part holds ``1 / M`` of the density, spread evenly over its width."""
+        mi, dr = self.mi, self.dr
+        nq = self._nq
+        lam, inv_p = [], []
+        for i in range(4):
+            ui = u + 0.25 * i
+            ui = dr.select(ui >= 1.0, ui - 1.0, ui) * nq
+            j = mi.UInt32(dr.clip(dr.floor(ui), 0, nq - 1))
+            l0 = dr.gather(mi.Float, quantiles, j)
+            width = dr.gather(mi.Float, quantiles, j + 1) - l0
+            lam.append(l0 + dr.clip(ui - mi.Float(j), 0.0, 1.0) * width)
+            inv_p.append(width * nq)
+        return lam, inv_p
+
+    def response(self, table, lam):
+        """A film response at wavelengths ``lam`` [nm]: linear between the table's 1 nm points, 0 outside."""
+        mi, dr = self.mi, self.dr
+        x = (lam - self._lo) * (1.0 / self._step)
+        k = mi.UInt32(dr.clip(dr.floor(x), 0, self._nbins - 1))
+        f = x - mi.Float(k)
+        r = dr.lerp(dr.gather(mi.Float, table, k), dr.gather(mi.Float, table, k + 1), f)
+        return dr.select((x >= 0) & (x <= self._nbins), r, 0.0)

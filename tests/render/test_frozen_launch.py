@@ -1,0 +1,225 @@
+"""The frozen launch (render2spike/render/frozen.py): its parts against Mitsuba's, its replays against the same
+function unfrozen, its frames against the film launch's, and its place in the render job.
+
+A camera with Mitsuba's spectral film anywhere in the process breaks ``drjit.freeze`` (see the module), so the
+tests that call a frozen function first let go of every film-launch renderer (``_collect``).
+"""
+
+import gc
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tests.render.conftest import needs_mitsuba
+
+pytestmark = [pytest.mark.render, needs_mitsuba]
+
+#: a plane, a small moving cube in front of it, and a camera that pans: every input of the frozen launch moves
+MOVING = [
+    {"name": "back", "shape": "rectangle", "size": [10, 10], "position": [0, 0, -0.5], "material": {"reflectance": 0.3}},
+    {"name": "thing", "shape": "cube", "size": [0.03, 0.03, 0.03], "position": [0, 0, 0], "material": {"reflectance": 0.8},
+     "motion": {"parametric": [{"translate": {"velocity_m_s": [0.25, 0.1, 0.0]}}]}},
+]
+
+
+def _scene(write_scene, pan=True):
+    from render2spike.render.scene import load_scene
+    changes = {"objects": MOVING, "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}}
+    if pan:
+        from tests.render.conftest import BASE
+        cam = dict(BASE["camera"])
+        cam["motion"] = {"parametric": [{"translate": {"velocity_m_s": [0.5, 0.0, 0.0]}}]}
+        changes["camera"] = cam
+    return load_scene(write_scene(changes))
+
+
+def _collect():
+    gc.collect()
+
+
+def test_response_tables_quantiles_cover_every_wavelength_a_response_sees():
+    from render2spike.render.frozen import response_tables
+    wl_a = np.arange(400.0, 701.0, 5.0)
+    a = np.where((wl_a > 450) & (wl_a < 650), 1.0, 0.0)  # a band with zero ends
+    wl_b = np.arange(380.0, 781.0, 1.0)
+    b = np.exp(-0.5 * ((wl_b - 555.0) / 40.0) ** 2)
+    lo, step, tables, q = response_tables({"A": (wl_a, a), "B": (wl_b, b)}, n_quantiles=512)
+    assert lo == 380.0 and step == 1.0 and len(q) == 513
+    assert q[0] >= 380.0 and q[-1] <= 780.0 and np.all(np.diff(q) >= 0)
+    grid = lo + step * np.arange(len(tables["A"]))
+    np.testing.assert_allclose(tables["A"], np.interp(grid, wl_a, a, left=0, right=0))
+    # every wavelength where a response is above zero falls in a part of non-zero width
+    fine = np.linspace(380.0, 780.0, 40001)
+    seen = (np.interp(fine, grid, tables["A"]) + np.interp(fine, grid, tables["B"])) > 0
+    j = np.clip(np.searchsorted(q, fine, side="right") - 1, 0, len(q) - 2)
+    assert np.all((q[j + 1] - q[j])[seen] > 0)
+    with pytest.raises(ValueError, match="off the 1 nm grid"):
+        response_tables({"A": (np.array([400.0, 400.5, 700.0]), np.ones(3))})
+    with pytest.raises(ValueError, match="zero everywhere"):
+        response_tables({"A": (wl_a, np.zeros_like(a))})
+
+
+def test_wavelength_estimator_integrates_each_response(write_scene):
+    # the Dr.Jit code itself: on a fine stratified grid of u, the mean of response(lambda) / p(lambda) is the
+    # response's integral (quadrature error only, far below the float32 rounding bound used here)
+    from render2spike.render.renderer import SceneRenderer
+    r = SceneRenderer(_scene(write_scene, pan=False), launch="frozen")
+    fl, mi = r._frozen, r.mi
+    n = 1 << 20
+    u = mi.Float((np.arange(n) + 0.5) / n / 4.0)  # the four strata cover [0, 1) once
+    lam, inv_p = fl.wavelengths(u, fl._quantiles)
+    grid_tables = [np.asarray(t, np.float64) for t in fl._tables]
+    for name, tab, tab_np in zip(fl.names, fl._tables, grid_tables):
+        est = sum(np.asarray(fl.response(tab, lam[i]) * inv_p[i], np.float64).sum() for i in range(4)) / (4 * n)
+        exact = np.trapezoid(tab_np, dx=fl._step)
+        assert abs(est / exact - 1.0) < 2e-4, (name, est, exact)
+        # and the response is the table's linear interpolation, zero outside it
+        x = np.array([fl._lo - 3.0, fl._lo + 0.25, fl._lo + 10.5, fl._lo + fl._nbins + 2.0])
+        got = np.asarray(fl.response(tab, mi.Float(x)), np.float64)
+        want = np.interp(x, fl._lo + np.arange(len(tab_np)), tab_np, left=0.0, right=0.0)
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+
+
+def test_primary_rays_are_mitsubas_perspective_camera(write_scene):
+    # same film positions, same pose: the frozen launch's rays are the film camera's (no frozen call here, so the
+    # film renderer may stay alive)
+    from render2spike.render.renderer import SceneRenderer
+    sc = _scene(write_scene)
+    rf = SceneRenderer(sc, launch="film")
+    rz = SceneRenderer(sc, launch="frozen", calibration=rf.calibration)
+    mi = rf.mi
+    rng = np.random.default_rng(3)
+    pos = rng.random((2, 257))
+    pos[:, :4] = [[0.0, 1.0, 0.5, 0.999], [0.0, 1.0, 0.5, 0.001]]
+    for t_s in (0.0, 0.013):
+        rf.set_time(t_s)
+        rz.set_time(t_s)
+        ray = rf.sensor.sample_ray(0.0, 0.5, mi.Point2f(pos[0], pos[1]), mi.Point2f(0.5, 0.5))[0]
+        o, d, maxt = rz._frozen.primary_rays(mi.Transform4f(rz._cam_m.tolist()), mi.Vector2f(pos[0], pos[1]))
+        np.testing.assert_allclose(np.asarray(d), np.asarray(ray.d), atol=2e-6)
+        np.testing.assert_allclose(np.asarray(o), np.asarray(ray.o), atol=2e-6)
+        np.testing.assert_allclose(np.asarray(maxt), np.asarray(ray.maxt), rtol=1e-5)
+
+
+def test_frozen_replays_are_the_unfrozen_function_bitwise(write_scene):
+    from render2spike.render.frozen import FrozenLaunch
+    from render2spike.render.renderer import SceneRenderer
+    _collect()
+    r = SceneRenderer(_scene(write_scene), launch="frozen")
+    fl = r._frozen
+    ref = FrozenLaunch(r.mi, r._dr, r.mi_scene, fl.height, fl.width, 1.0, 1.0, 2.0,
+                       {"Phi": (np.array([400.0, 700.0]), np.ones(2))}, "multijitter", frozen=False)
+    ref.__dict__.update({k: v for k, v in fl.__dict__.items() if k not in ("_fn", "frozen")})  # same camera, tables
+    assert ref.frozen is False and ref._fn == ref._launch
+    warm = tuple((0.001 * k, 100 + k, spp) for spp in (16, 4) for k in range(4))
+    calls = ((0.004, 8, 16), (0.013, 123456789, 4), (0.004, 8, 16), (0.02, 9, 4), (0.007, 11, 16))
+    frozen = []
+    for k, (t_s, seed, spp) in enumerate(warm + calls):
+        if k == len(warm):
+            # a sample count is recorded at its first call, and again at some of its next few (Dr.Jit re-records
+            # when an input's layout changed: 1-3 times more over the first 5 frames of the rotating disk, never
+            # after in 300 frames); then only replayed
+            n_warm = fl.n_recordings
+            assert 2 <= n_warm <= len(warm), n_warm
+        r.set_time(t_s)
+        out = fl.channels(fl.launch(seed, spp, r._cam_m))
+        if k >= len(warm):
+            frozen.append(out)
+    # new poses, new seeds: replays, no recording (they are inputs, not constants of the recording)
+    assert fl.n_recordings == n_warm, (fl.n_recordings, n_warm)
+    for (t_s, seed, spp), a in zip(calls, frozen):  # and each is the same function unfrozen, bit for bit
+        r.set_time(t_s)
+        b = ref.channels(ref.launch(seed, spp, r._cam_m))
+        for c in ("Phi", "E"):
+            np.testing.assert_array_equal(a[c], b[c])
+            assert np.all(np.isfinite(a[c])) and a[c].mean() > 0
+    np.testing.assert_array_equal(frozen[0]["Phi"], frozen[2]["Phi"])  # the same frame again: the same bits
+    assert not np.array_equal(frozen[0]["Phi"], frozen[4]["Phi"])
+
+
+def test_frozen_frames_estimate_what_the_film_frames_estimate(write_scene):
+    # independent seeds on each side; per pixel, Welch's t of the two means (n renders each) must stay within a
+    # Bonferroni bound over the pixels (family-wise 1e-3), and the image means within z = 4.5 of their error
+    from render2spike.render.renderer import SceneRenderer
+    sc = _scene(write_scene)
+    n, spp, t_s = 6, 16, 0.013
+    rf = SceneRenderer(sc, launch="film")
+    cal = rf.calibration
+    film = [rf.render_exact(t_s, [1000 + i], spp) for i in range(n)]
+    del rf
+    _collect()
+    rz = SceneRenderer(sc, launch="frozen", calibration=cal)
+    froz = [rz.render_exact(t_s, [2000 + i], spp) for i in range(n)]
+    for k, name in enumerate(("Phi", "E")):
+        a = np.stack([f[k] for f in film])
+        b = np.stack([f[k] for f in froz])
+        va, vb = a.var(axis=0, ddof=1), b.var(axis=0, ddof=1)
+        t = (a.mean(0) - b.mean(0)) / np.sqrt((va + vb) / n + 1e-300)
+        flat = (va + vb) == 0  # pixels every render sees alike (e.g. one surface, no edge): equal means needed
+        np.testing.assert_allclose(a.mean(0)[flat], b.mean(0)[flat], rtol=1e-5)
+        bound = stats.t.isf(1e-3 / (2 * t.size), 2 * n - 2)
+        assert np.abs(t[~flat]).max() < bound, (name, np.abs(t[~flat]).max(), bound)
+        ma, mb = a.mean(axis=(1, 2)), b.mean(axis=(1, 2))
+        z = (ma.mean() - mb.mean()) / np.sqrt(ma.var(ddof=1) / n + mb.var(ddof=1) / n)
+        assert abs(z) < 4.5, (name, z)
+
+
+def test_render_job_records_the_launch_and_resumes_only_with_it(tmp_path, write_scene):
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    from sensor.frames import read_frames
+    _collect()
+    sc = load_scene(write_scene(), ["render.spp=4"])
+    res = render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: None, launch="frozen")
+    m = json.loads((res.out / "frames.json").read_text())
+    assert m["launch"] == "frozen" and res.n_rendered == 3
+    seq = read_frames(res.out)
+    assert seq.read(0).header["launch"] == "frozen"
+    again = render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: None, launch="frozen")
+    assert again.n_rendered == 0  # up to date: the same hash
+    with pytest.raises(InputError, match="--launch frozen"):
+        render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: None, launch="film")
+    with pytest.raises(InputError, match="film, frozen"):
+        render_scene(sc, tmp_path / "g", progress=False, log=lambda *a: None, launch="thawed")
+    assert not (tmp_path / "g").exists()
+
+
+def test_a_live_film_scene_gives_a_clear_error_not_a_wrong_frame(tmp_path, write_scene):
+    # in a child process: a failed recording may leave Dr.Jit's state unusable for the tests after it
+    import subprocess
+    import sys
+    path = write_scene({"objects": MOVING, "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}})
+    code = (
+        "import sys\n"
+        "from render2spike.render.renderer import SceneRenderer\n"
+        "from render2spike.render.scene import load_scene\n"
+        "from sensor.errors import DependencyError\n"
+        f"sc = load_scene({str(path)!r})\n"
+        "film = SceneRenderer(sc)\n"
+        "r = SceneRenderer(sc, launch='frozen', calibration=film.calibration)\n"
+        "try:\n"
+        "    r.render_exact(0.0, [1], 4)\n"
+        "except DependencyError as e:\n"
+        "    print('ERROR', e)\n"
+        "    sys.exit(0)\n"
+        "print('NO ERROR')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "ERROR the frozen launch failed" in out.stdout and "--launch film" in out.stdout, out.stdout
+
+
+def test_cli_launch_option_reaches_the_frames_and_the_run_summary(tmp_path, write_scene, capsys):
+    from render2spike.cli import main
+    path = write_scene()
+    assert main(["render", str(path), "--out", str(tmp_path / "f"), "--spp", "4", "--launch", "frozen",
+                 "--quiet"]) == 0
+    assert json.loads((tmp_path / "f" / "frames.json").read_text())["launch"] == "frozen"
+    assert main(["run", str(path), "--out", str(tmp_path / "r"), "--spp", "4", "--launch", "frozen",
+                 "--quiet"]) == 0
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["launch"] == "frozen"
+    with pytest.raises(SystemExit):
+        main(["render", str(path), "--out", str(tmp_path / "g"), "--launch", "thawed"])
+    assert "invalid choice: 'thawed'" in capsys.readouterr().err
