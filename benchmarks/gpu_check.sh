@@ -6,8 +6,11 @@
 #      RENDER2SPIKE_VARIANT so that they cannot pass by falling back to the CPU;
 #   3. benchmarks/render_gpu.py: samples/s and frames/s of each working variant, against the 2-core CPU rows
 #      measured earlier (--cpu-ref).
-#   4. the README's main job (render2spike run scenes/rotating_disk.yaml) on the variant chosen automatically.
-# Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] \
+#   4. the README's main job (render2spike run scenes/rotating_disk.yaml) on the variant chosen automatically;
+#   5. with FROZEN_T=seconds (0 or unset: skipped), benchmarks/render_frozen.py, the film launch against the
+#      frozen launch (render2spike/render/frozen.py, not yet run on a GPU) on the auto-selected variant, at
+#      three points (its tests run in step 2, as part of tests/render).
+# Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -62,6 +65,13 @@ demo=$(mktemp -d)/demo  # a fresh folder: a rerun must not resume a finished job
   cat "$demo/summary.md"; } > "$OUT/demo.txt" 2>&1
 grep -qx "exit 0" "$OUT/demo.txt" || fail=1
 stamp "main job: $(grep -E '^wall|^exit' "$OUT/demo.txt" | tr '\n' ' ')"
+}
+[ "${FROZEN_T:-0}" -gt 0 ] && {
+stamp "frozen launch against film launch (timeout ${FROZEN_T} s)"
+timeout "$FROZEN_T" python3 benchmarks/render_frozen.py --rounds 1 --frames 16 --warm 4 --out "$OUT/frozen" \
+  --points lambertian_plane:window:16 rotating_disk:window:16 rotating_disk:full:16 > "$OUT/frozen.txt" 2>&1
+rc=$?; [ $rc -eq 0 ] || fail=1
+stamp "frozen launch benchmark exit $rc"
 }
 cat "$OUT/bench/render_gpu.md" 2>/dev/null | tail -30
 cat "$OUT/steps.txt"

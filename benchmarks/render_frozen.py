@@ -5,7 +5,8 @@ spectral film, traced anew on the host every frame; ``launch="frozen"`` (``rende
 records the launch once with ``drjit.freeze`` and replays it. This times, per point (scene, size, spp),
 what the render job pays per frame for its render: ``set_time`` to the frame's time, the launch, and the
 wait for the channels (``SceneRenderer.render_exact``), on a moving scene over ``--frames`` frame times
-after ``--warm`` frames (which record and compile). Each launch runs in its own child process (a camera
+after ``--warm`` frames (which record and compile; Dr.Jit may re-record a count once more in a later
+frame, which the median hides; the ``recordings`` column gives each round's count). Each launch runs in its own child process (a camera
 with the spectral film anywhere in a process breaks ``drjit.freeze``), the two alternating for
 ``--rounds`` rounds; the ratio film / frozen is taken per round, in one run, with the load average
 before and after each child.
@@ -152,7 +153,7 @@ def report(res: dict) -> str:
         loads = [x for r in p["film"] + p["frozen"] for x in (r["load_before"][0], r["load_after"][0])]
         L.append(f"| {p['scene']} | {p['film'][0]['height']} x {p['film'][0]['width']} | {p['spp']} | "
                  f"{', '.join(f'{x:.2f}' for x in f)} | {', '.join(f'{x:.2f}' for x in z)} | "
-                 f"{', '.join(f'{x:.2f}' for x in ratio)} | {p['frozen'][0]['recordings']} | "
+                 f"{', '.join(f'{x:.2f}' for x in ratio)} | {', '.join(str(r['recordings']) for r in p['frozen'])} | "
                  f"{min(loads):.2f}-{max(loads):.2f} |")
     if any(p.get("pipeline_film") for p in res["points"]):
         L += ["", "The render job per frame (`render_scene`, fixed spp, adaptive off: frame writes, journal and "

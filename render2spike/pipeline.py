@@ -125,6 +125,9 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         raise InputError("exists and is not a folder", path=out, field="--out")
     from sensor.lock import sweep_parts
     sweep_parts(out, log=log)
+    from .render.frozen import LAUNCHES
+    if launch not in LAUNCHES:
+        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
     sc = load_scene(scene, sets, lux=lux, duration_s=duration_s, profile=profile)
     old = None
     if (out / "summary.json").is_file() and not overwrite:
@@ -141,6 +144,10 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
             was, used = old.get("variant"), backend.mitsuba(variant).variant()
             if was and backend.variant_family(was) != backend.variant_family(used):
                 hint = f"; it was rendered with Mitsuba '{was}', this run uses '{used}': pass --variant {was} to resume it"
+            was_launch = old.get("launch") or "film"
+            if "scene_hash" in diff and was_launch != launch:
+                hint += (f"; it was rendered with the {was_launch} launch, this run uses the {launch} launch: "
+                         f"pass --launch {was_launch} to resume it")
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)
                              + "); pass --overwrite to replace it, or choose another --out" + hint, path=out)
@@ -218,7 +225,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
 | light level (reference) | {sc.illuminance_lux:g} lux |
 | clip | {sc.duration_s:g} s = {T} intervals of {prof.interval_s * 1e6:g} us |
 | sensor | {prof.name}, {H} x {W} px, threshold {prof.threshold_e:g} e- |
-| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {res.spp} spp, Mitsuba `{m.get("variant")}` |
+| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {res.spp} spp, Mitsuba `{m.get("variant")}`, {m.get("launch", "film")} launch |
 | render noise / shot noise | {summary['render_noise_ratio_mean'] if summary['render_noise_ratio_mean'] is None else f"{summary['render_noise_ratio_mean']:.3f}"} (RMS over {(m.get('render_noise_ratio') or {}).get('window_intervals')} intervals) |
 | mean photoelectrons | {exp_e:.3g} e- per pixel per interval |
 | spikes | {n_spk} ({rate_per_interval:.4f} per pixel per interval = {summary['spike_rate_hz']:.1f} Hz) |

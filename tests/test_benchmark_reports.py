@@ -173,7 +173,7 @@ def test_frozen_launch_report_pairs_rounds_and_columns():
     def row(ms, lb=1.0, la=1.5, rec=None):
         return {"median_ms": ms, "height": 32, "width": 48, "recordings": rec, "load_before": [lb], "load_after": [la]}
     p = {"scene": "plane", "size": "window", "spp": 16,
-         "film": [row(4.0), row(6.0)], "frozen": [row(2.0, rec=3), row(1.5, lb=0.5, la=2.5)],
+         "film": [row(4.0), row(6.0)], "frozen": [row(2.0, rec=3), row(1.5, lb=0.5, la=2.5, rec=2)],
          "pipeline_film": [row(5.0), row(6.6)], "pipeline_frozen": [row(3.0), row(3.0)]}
     res = {"when": "now", "machine": "m", "rounds": 2, "frames": 8, "warm": 1, "points": [p],
            "jobs": [{"scene": "plane", "launch": "frozen", "wall_s": 1.5, "frames": 3, "spp": 35,
@@ -181,7 +181,7 @@ def test_frozen_launch_report_pairs_rounds_and_columns():
     text = mod.report(res)
     launch_row = [ln for ln in text.splitlines() if ln.startswith("| plane | 32 x 48 | 16 | 4.00")][0]
     cells = [c.strip() for c in launch_row.strip("|").split("|")]
-    assert cells[3:8] == ["4.00, 6.00", "2.00, 1.50", "2.00, 4.00", "3", "0.50-2.50"]
+    assert cells[3:8] == ["4.00, 6.00", "2.00, 1.50", "2.00, 4.00", "3, 2", "0.50-2.50"]
     job_row = [ln for ln in text.splitlines() if ln.startswith("| plane | 32 x 48 | 16 | 5.00")][0]
     cells = [c.strip() for c in job_row.strip("|").split("|")]
     # frozen job / bare film launch, film job / film launch, frozen job / frozen launch

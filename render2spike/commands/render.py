@@ -66,12 +66,13 @@ def add_scene_options(p) -> None:
                         "$RENDER2SPIKE_VARIANT if set, else auto; this option wins over the variable. The variant's "
                         "back end (cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends "
                         "are never mixed in one folder, and a rerun must ask for the same back end to resume")
-    p.add_argument("--launch", default="film", choices=("film", "frozen"),
+    from render2spike.render.frozen import LAUNCHES
+    p.add_argument("--launch", default="film", choices=LAUNCHES,
                    help="how each frame's render is launched. film (default): the path integrator renders into "
                         "Mitsuba's spectral film, traced anew every frame. frozen: the launch is recorded once "
                         "with drjit.freeze and replayed (own camera rays, wavelength sampling and per-pixel sums "
                         "around the same integrator; LLVM or CUDA variants): the same channels and units, another "
-                        "Monte Carlo estimate, 1.2-2.4x faster per frame on a 2-core CPU (docs/performance.md); "
+                        "Monte Carlo estimate, faster per frame (docs/performance.md, \"The frozen launch\"); "
                         "not yet run on a GPU. Part of the folder's scene hash, like the variant")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -116,7 +117,7 @@ def run(args) -> int:
                        launch=args.launch)
     m = res.manifest
     ts = m.get("temporal_sampling", {})
-    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}; {res.spp} spp; "
+    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, {m.get('launch', 'film')} launch; {res.spp} spp; "
           f"{ts.get('n_refined', 0)} added by adaptive refinement; render/shot noise "
           f"{(m.get('render_noise_ratio') or {}).get('mean', float('nan')):.3f}; {res.seconds:.1f} s")
     return 0

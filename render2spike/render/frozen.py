@@ -20,15 +20,18 @@ what the camera and the ``specfilm`` did, in Dr.Jit, around the scene integrator
    distribution: ``M`` = :data:`N_QUANTILES` wavelengths ``lambda_j`` that cut the summed film
    responses (piecewise linear on a 1 nm grid) into equal parts; ``u`` in ``[j/M, (j+1)/M)``
    falls uniformly in ``[lambda_j, lambda_(j+1))``, so the density drawn from is
-   ``p = 1 / (M (lambda_(j+1) - lambda_j))`` there: two gathers a wavelength, where a binary search
-   of the cumulative table took ten (and the frame twice as long). Each channel then gets
+   ``p = 1 / (M (lambda_(j+1) - lambda_j))`` there (two gathers a wavelength). Each channel then gets
    ``mean_i srf_c(lambda_i) L(lambda_i) / p(lambda_i)``: an unbiased estimate of
    ``int srf_c(lambda) L(lambda) d lambda``, the quantity ``specfilm`` estimates (with its own
-   density). Same expectation, another Monte Carlo estimate: frames are not bitwise those of the
+   density), with ``srf_c`` zero outside its own first and last wavelength as Mitsuba's ``irregular``
+   spectrum is. Same expectation, another Monte Carlo estimate: frames are not bitwise those of the
    film launch.
-3. **Per-pixel sums** with ``drjit.block_reduce`` over each pixel's ``spp`` consecutive samples
-   (box filter: every sample lands in its own pixel, weight 1), divided by ``spp``. No atomic
-   adds: the sum's order is fixed, so a GPU gives the same frame on every run.
+3. **Per-pixel sums** with ``drjit.block_reduce`` (its evaluated mode) over each pixel's ``spp``
+   consecutive samples (box filter: every sample lands in its own pixel, weight 1), divided by
+   ``spp``. No atomic adds: the sum's order is fixed, so a GPU should give the same frame on every
+   run too (not yet measured on one). The price: the samples' channel values are held in memory
+   before the sums, 8 bytes a sample (0.8 GB at 250 x 400 and 1024 spp); a launch of 2^32 samples
+   or more is refused.
 
 The result is the pair of raw channels (``Phi``, ``E``) that the film launch gives, in the same
 units, so :mod:`.photometry` applies unchanged. :class:`FrozenLaunch` keeps one frozen function;
@@ -43,6 +46,12 @@ import numpy as np
 GRID_STEP_NM = 1.0
 #: equal-probability parts of the wavelength density (``lambda_j`` table of ``N_QUANTILES + 1`` points)
 N_QUANTILES = 4096
+#: how a frame is launched (:class:`render2spike.render.renderer.SceneRenderer`): ``film`` (the integrator's
+#: own render into Mitsuba's ``specfilm``; the default) or ``frozen`` (this module)
+LAUNCHES = ("film", "frozen")
+#: the frozen launch's estimator, in the frames' scene hash: a change to how it samples or sums (grid, table,
+#: order of the sampler's dimensions) must bump it, so that no folder mixes frames of two estimators
+ESTIMATOR_VERSION = 1
 
 
 def response_tables(curves: dict[str, tuple[np.ndarray, np.ndarray]], step_nm: float = GRID_STEP_NM,
@@ -53,8 +62,10 @@ def response_tables(curves: dict[str, tuple[np.ndarray, np.ndarray]], step_nm: f
     outside its range), as handed to ``specfilm``. Knots off the grid would be smoothed by it:
     refused.
 
-    Returns ``(lambda0_nm, step_nm, tables, quantiles)``: ``tables[channel]`` the responses at
-    ``lambda0 + k step`` (float64, n + 1 points); ``quantiles`` (``n_quantiles + 1`` points [nm]) the
+    Returns ``(lambda0_nm, step_nm, tables, quantiles, ranges)``: ``tables[channel]`` the responses at
+    ``lambda0 + k step`` (float64, n + 1 points); ``ranges[channel]`` its first and last wavelength
+    [nm], outside which it is zero (the table alone would ramp a response that ends above zero down
+    over one grid step); ``quantiles`` (``n_quantiles + 1`` points [nm]) the
     wavelengths below which ``j / n_quantiles`` of the summed responses' integral lies (their
     cumulative integral taken per 1 nm bin, linear inside it). Every wavelength where a response is
     above zero lies in a part of non-zero width.
@@ -63,13 +74,14 @@ def response_tables(curves: dict[str, tuple[np.ndarray, np.ndarray]], step_nm: f
     hi = max(float(wl[-1]) for wl, _ in curves.values())
     n = int(round((hi - lo) / step_nm))
     grid = lo + step_nm * np.arange(n + 1)
-    tables = {}
+    tables, ranges = {}, {}
     for name, (wl, v) in curves.items():
         wl = np.asarray(wl, np.float64)
         off = (wl - lo) / step_nm
         if not np.allclose(off, np.round(off), rtol=0, atol=1e-9):
             raise ValueError(f"response '{name}' has knots off the {step_nm:g} nm grid from {lo:g} nm")
         tables[name] = np.interp(grid, wl, np.maximum(np.asarray(v, np.float64), 0.0), left=0.0, right=0.0)
+        ranges[name] = (float(wl[0]), float(wl[-1]))
     total = sum(tables.values())
     w = 0.5 * (total[:-1] + total[1:]) * step_nm  # exact integral of the piecewise-linear sum per bin
     if not w.sum() > 0:
@@ -77,7 +89,7 @@ def response_tables(curves: dict[str, tuple[np.ndarray, np.ndarray]], step_nm: f
     cdf = np.concatenate([[0.0], np.cumsum(w)]) / w.sum()
     cdf[-1] = 1.0
     quantiles = np.interp(np.arange(n_quantiles + 1) / n_quantiles, cdf, grid)
-    return lo, step_nm, tables, quantiles
+    return lo, step_nm, tables, quantiles, ranges
 
 
 def _root(exc: BaseException) -> BaseException:
@@ -107,7 +119,8 @@ class FrozenLaunch:
         self.scene = mi_scene
         self.height, self.width = int(height), int(width)
         self.names = list(curves)
-        lo, step, tables, quantiles = response_tables(curves)
+        lo, step, tables, quantiles, ranges = response_tables(curves)
+        self._ranges = [ranges[c] for c in self.names]
         self._lo, self._step, self._nbins = float(lo), float(step), len(tables[self.names[0]]) - 1
         self._nq = len(quantiles) - 1
         self._tables = [mi.Float(tables[c].astype(np.float32)) for c in self.names]
@@ -118,7 +131,7 @@ class FrozenLaunch:
         self._integrator = mi_scene.integrator()
         self.frozen = bool(frozen)
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
-        self._collected = not self.frozen
+        self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
 
     @property
     def n_recordings(self) -> int:
@@ -132,19 +145,26 @@ class FrozenLaunch:
         return int(s.sample_count())
 
     def launch(self, seed: int, spp: int, cam_to_world: np.ndarray):
-        """Start the render at ``spp`` samples per pixel; -> per-channel sums (Dr.Jit arrays, H*W each).
+        """Start the render at ``spp`` samples per pixel; -> ``(spp taken, per-channel sums)``, the sums
+        Dr.Jit arrays of H*W each, not yet waited for.
 
         ``cam_to_world``: the camera's 4 x 4 pose (its ``to_world``). :meth:`channels` waits for the
-        result and returns the channels as arrays.
+        result and returns the channels as arrays. Raises :class:`sensor.errors.InputError` for a launch
+        of 2^32 samples or more, :class:`sensor.errors.DependencyError` when Dr.Jit cannot freeze it.
         """
         mi = self.mi
-        spp = self.sample_count(spp)
+        spp = self.sample_count(spp) if self.height * self.width * int(spp) < 1 << 32 else int(spp)
+        if self.height * self.width * spp >= 1 << 32:
+            from sensor.errors import InputError
+            raise InputError(f"{self.height} x {self.width} pixels at {spp} spp is {self.height * self.width * spp:,} "
+                             "samples in one launch, 2^32 or more: the frozen launch cannot take it; use fewer "
+                             "samples per pixel or --launch film (which renders in passes)", field="spp")
         m = mi.Transform4f(np.asarray(cam_to_world, np.float64).tolist())
         self.dr.make_opaque(m)  # inputs, not constants of the recording: one recording serves every pose and seed
-        if not self._collected:  # scenes with the spectral film that are garbage not yet collected (e.g. the
-            import gc            # light meter's, in a reference cycle) would break the first recording
-            gc.collect()
-            self._collected = True
+        if self.frozen and spp not in self._seen_spp:  # a new count is recorded: scenes with the spectral film
+            import gc  # that are garbage not yet collected (e.g. a light meter's, in a reference cycle) would
+            gc.collect()  # break the recording
+            self._seen_spp.add(spp)
         try:
             seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
             out = self._fn(self.scene, seed_v, m, spp, self._tables, self._quantiles)
@@ -154,10 +174,11 @@ class FrozenLaunch:
             from sensor.errors import DependencyError
             raise DependencyError(
                 "the frozen launch failed: Dr.Jit could not record or replay the render "
-                f"({' '.join(str(_root(exc)).split())[:200]}). Mitsuba 3.9.1 cannot freeze a function while "
+                f"({' '.join(str(_root(exc)).split())}). Mitsuba 3.9.1 cannot freeze a function while "
                 "a camera with a spectral film ('specfilm') exists anywhere in the process (mitsuba3 issue "
                 "1810): free other scenes rendered with the film launch first, or render with --launch film "
-                "(SceneRenderer(..., launch='film')). This renderer cannot be used further.") from exc
+                "(SceneRenderer(..., launch='film')). Dr.Jit's state in this process may be unusable after "
+                "this: start a new process.") from exc
         return spp, out
 
     def channels(self, launched) -> dict[str, np.ndarray]:
@@ -185,13 +206,13 @@ class FrozenLaunch:
         ray = mi.Ray3f(o, d, maxt, 0.0, mi.UnpolarizedSpectrum(*lam))
         L, _, _ = self._integrator.sample(scene, sampler, mi.RayDifferential3f(ray), None, True)
         accs = []
-        for tab in tables:
+        for tab, rng in zip(tables, self._ranges):
             acc = mi.Float(0.0)
             for i in range(4):
-                acc += self.response(tab, lam[i]) * L[i] * inv_p[i]
+                acc += self.response(tab, lam[i], rng) * L[i] * inv_p[i]
             accs.append(acc * 0.25)
         dr.eval(*accs)  # one kernel for all channels (each sum alone would trace the paths again)
-        return [dr.block_reduce(dr.ReduceOp.Add, a, spp) for a in accs]
+        return [dr.block_reduce(dr.ReduceOp.Add, a, spp, mode="evaluated") for a in accs]
 
     # --------------------------------------------------------- its parts (also tested on their own)
     def primary_rays(self, m, film_pos):
@@ -228,11 +249,12 @@ class FrozenLaunch:
             inv_p.append(width * nq)
         return lam, inv_p
 
-    def response(self, table, lam):
-        """A film response at wavelengths ``lam`` [nm]: linear between the table's 1 nm points, 0 outside."""
+    def response(self, table, lam, wl_range):
+        """A film response at wavelengths ``lam`` [nm]: linear between the table's 1 nm points, zero outside
+        ``wl_range`` (its own first and last wavelength [nm], as Mitsuba's ``irregular`` spectrum)."""
         mi, dr = self.mi, self.dr
         x = (lam - self._lo) * (1.0 / self._step)
         k = mi.UInt32(dr.clip(dr.floor(x), 0, self._nbins - 1))
         f = x - mi.Float(k)
         r = dr.lerp(dr.gather(mi.Float, table, k), dr.gather(mi.Float, table, k + 1), f)
-        return dr.select((x >= 0) & (x <= self._nbins), r, 0.0)
+        return dr.select((lam >= wl_range[0]) & (lam <= wl_range[1]), r, 0.0)

@@ -210,13 +210,18 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     # frames_format 2: frames named by tick, light level stored in the render state; procedure 3 (auto spp
     # only): the budget's answer snapped on measured pairs (noise.snap_to_measured), which can choose another
     # spp than procedure 2 did, so a folder of the older budget is not taken for this one's output
-    # launch (renderer.LAUNCHES): the frozen launch makes other Monte Carlo estimates than the film's, so its
-    # frames get their own hash; the film launch adds nothing (the hashes of folders made before it stay valid)
+    # launch (frozen.LAUNCHES): the frozen launch makes other Monte Carlo estimates than the film's, so its
+    # frames get their own hash, with its estimator's version; the film launch adds nothing (the hashes of
+    # folders made before it stay valid)
+    from .frozen import ESTIMATOR_VERSION, LAUNCHES
+    if launch not in LAUNCHES:
+        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
     auto = scene.render.get("spp") == "auto"
     out = {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
            "procedure": 3 if auto else 2}
     if launch != "film":
         out["launch"] = launch
+        out["launch_estimator"] = ESTIMATOR_VERSION
     return out
 
 
@@ -255,7 +260,7 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
 def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, variant, log, wrote,
                    launch: str = "film") -> RenderResult:
     t_start = time.perf_counter()
-    from .renderer import LAUNCHES
+    from .frozen import LAUNCHES
     if launch not in LAUNCHES:
         raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
     mi = backend.mitsuba(variant)

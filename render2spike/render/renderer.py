@@ -27,14 +27,26 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, SENSOR_KEY, build_dict, to_transform
+from .frozen import LAUNCHES  # ``film`` or ``frozen``
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
                          warn_if_reference_shadowed)
 from .scene import Scene, spectrum_curve
 
 
-#: how a frame is launched: ``film`` (the integrator's own render into Mitsuba's ``specfilm``; the default)
-#: or ``frozen`` (:mod:`.frozen`: recorded once with ``drjit.freeze``, replayed after)
-LAUNCHES = ("film", "frozen")
+def _check_frozen_camera(cam: dict) -> None:
+    """The frozen launch makes the rays of a plain pinhole camera (:meth:`.frozen.FrozenLaunch.primary_rays`):
+    refuse a camera dict that asks for more, so that a change to the builder cannot make its frames drift."""
+    film = cam.get("film", {})
+    ok = (cam.get("type") == "perspective" and cam.get("fov_axis") == "x" and film.get("type") == "specfilm"
+          and film.get("rfilter", {}).get("type") == "box"
+          and not any(k in cam for k in ("principal_point_offset_x", "principal_point_offset_y",
+                                         "shutter_open_time", "medium"))
+          and not any(k in film for k in ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
+                                          "sample_border")))
+    if not ok:
+        raise RuntimeError("the frozen launch supports a perspective camera (fov along x, no principal-point "
+                           "offset, shutter time or medium) with a box-filtered specfilm without crop or border; "
+                           f"the scene builder made {cam!r}: use --launch film, or extend frozen.py")
 
 
 def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
@@ -65,7 +77,7 @@ class SceneRenderer:
     def __init__(self, scene: Scene, variant: str | None = None, calibration: dict | None = None,
                  launch: str = "film"):
         if launch not in LAUNCHES:
-            raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="launch")
+            raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
         self.scene = scene
         self.launch_kind = launch
         self.mi = mi = backend.mitsuba(variant)
@@ -74,6 +86,7 @@ class SceneRenderer:
         d, self.motions = build_dict(mi, scene)
         cam_dict = d[SENSOR_KEY]
         if launch == "frozen":  # the camera keeps its pose and sampler; its film is never rendered (frozen.py)
+            _check_frozen_camera(cam_dict)
             film = cam_dict["film"]
             curves = {c: tuple(np.array([float(x) for x in film[c][k].split(",")]) for k in ("wavelengths", "values"))
                       for c in ("Phi", "E")}
@@ -94,7 +107,7 @@ class SceneRenderer:
         if launch == "frozen":
             if not drjit.is_jit_v(mi.Float):
                 raise InputError(f"the frozen launch needs an LLVM or CUDA variant of Mitsuba (drjit.freeze); "
-                                 f"this run uses '{self.variant}': choose launch 'film' for it", field="launch")
+                                 f"this run uses '{self.variant}': use --launch film with it", field="--launch")
             from .frozen import FrozenLaunch
             self._frozen = FrozenLaunch(mi, drjit, self.mi_scene, scene.profile.height, scene.profile.width,
                                         cam_dict["fov"], cam_dict["near_clip"], cam_dict["far_clip"], curves,
@@ -167,8 +180,8 @@ class SceneRenderer:
 
     # ----------------------------------------------------------- rendering
     def launch(self, t_s: float, seed: int, spp: int):
-        """Start one render at ``t_s`` with ``spp`` samples per pixel (:meth:`_render_call`); the film tensor, not yet
-        waited for.
+        """Start one render at ``t_s`` with ``spp`` samples per pixel (:meth:`_render_call`); the launched render
+        (the film tensor, or the frozen launch's sums), not yet waited for.
 
         Dr.Jit's LLVM backend runs the kernel asynchronously: :meth:`channels` waits for it. A second
         render launched before waiting for the first (a frame and its verification launch) does not
@@ -198,7 +211,7 @@ class SceneRenderer:
                                            evaluate=False)
 
     def channels(self, img) -> tuple[np.ndarray, np.ndarray]:
-        """(Phi_raw, E_raw), float64 (H, W), of a film tensor from :meth:`launch` (waits for its kernel)."""
+        """(Phi_raw, E_raw), float64 (H, W), of a render from :meth:`launch` (waits for its kernel)."""
         if self._frozen is not None:
             ch = self._frozen.channels(img)
             return ch["Phi"], ch["E"]
