@@ -135,7 +135,8 @@ class FrozenLaunch:
 
     @property
     def n_recordings(self) -> int:
-        """Recordings the frozen function made so far (one per sample count, then replays); 0 unfrozen."""
+        """Recordings the frozen function made so far (one per sample count at its first launch, at times one
+        or two more in the next few, then replays); 0 unfrozen."""
         return int(getattr(self._fn, "n_recordings", 0))
 
     def sample_count(self, spp: int) -> int:

@@ -144,7 +144,7 @@ def test_frozen_replays_are_the_unfrozen_function_bitwise(write_scene):
     for k, (t_s, seed, spp) in enumerate(warm + calls):
         if k == len(warm):
             # a sample count is recorded at its first call, and again at some of its next few (Dr.Jit re-records
-            # when an input's layout changed: 1-3 times more over the first 5 frames of the rotating disk, never
+            # when an input's layout changed: twice more over the first 5 frames of the rotating disk, never
             # after in 300 frames); then only replayed
             n_warm = fl.n_recordings
             assert 2 <= n_warm <= len(warm), n_warm
