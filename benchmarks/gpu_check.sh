@@ -9,8 +9,12 @@
 #   4. the README's main job (render2spike run scenes/rotating_disk.yaml) on the variant chosen automatically;
 #   5. with FROZEN_T=seconds (0 or unset: skipped), benchmarks/render_frozen.py, the film launch against the
 #      frozen launch (render2spike/render/frozen.py, not yet run on a GPU) on the auto-selected variant, at
-#      three points (its tests run in step 2, as part of tests/render).
-# Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] \
+#      three points, or those FROZEN_ARGS gives (its tests run in step 2, as part of tests/render).
+# REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
+# the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: film only,
+# the default launch).
+# Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
+#        [DEMO_LAUNCHES="film frozen"] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -50,28 +54,40 @@ RENDER2SPIKE_VARIANT=cuda_ad_spectral timeout "$TEST_T" python3 -m pytest ${TEST
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "render tests exit $rc ($(tail -1 "$OUT/pytest_render_cuda.txt"))"
 
+[ "$BENCH_T" -gt 0 ] && {
 stamp "benchmark (start no point after ${BENCH_T} s)"
 python3 benchmarks/render_gpu.py --frames 16 --cpu-frames 4 --time-limit-s "$BENCH_T" --point-timeout-s 120 \
   --cpu-ref benchmarks/results/gpu_2026-11-26/cpu_2core/render_gpu.json --out "$OUT/bench" ${BENCH_ARGS:-} \
   > "$OUT/bench.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "benchmark exit $rc"
+}
 
 [ "$DEMO_T" -gt 0 ] && {
-stamp "main job (README's command) on the auto-selected variant (timeout ${DEMO_T} s)"
 TIMEFORMAT='wall %R s, user %U s, sys %S s'
+for launch in ${DEMO_LAUNCHES:-film}; do
+stamp "main job (README's command) on the auto-selected variant, --launch $launch (timeout ${DEMO_T} s)"
 demo=$(mktemp -d)/demo  # a fresh folder: a rerun must not resume a finished job
-{ time timeout "$DEMO_T" python3 -m render2spike run scenes/rotating_disk.yaml --out "$demo"; echo "exit $?"
-  cat "$demo/summary.md"; } > "$OUT/demo.txt" 2>&1
-grep -qx "exit 0" "$OUT/demo.txt" || fail=1
-stamp "main job: $(grep -E '^wall|^exit' "$OUT/demo.txt" | tr '\n' ' ')"
+log="$OUT/demo.txt"; [ "$launch" = film ] || log="$OUT/demo_$launch.txt"
+{ time timeout "$DEMO_T" python3 -m render2spike run scenes/rotating_disk.yaml --out "$demo" --launch "$launch"
+  echo "exit $?"; cat "$demo/summary.md"; } > "$log" 2>&1
+grep -qx "exit 0" "$log" || fail=1
+stamp "main job, --launch $launch: $(grep -E '^wall|^exit' "$log" | tr '\n' ' ')"
+done
 }
 [ "${FROZEN_T:-0}" -gt 0 ] && {
 stamp "frozen launch against film launch (timeout ${FROZEN_T} s)"
 timeout "$FROZEN_T" python3 benchmarks/render_frozen.py --rounds 1 --frames 16 --warm 4 --out "$OUT/frozen" \
-  --points lambertian_plane:window:16 rotating_disk:window:16 rotating_disk:full:16 > "$OUT/frozen.txt" 2>&1
+  ${FROZEN_ARGS:---points lambertian_plane:window:16 rotating_disk:window:16 rotating_disk:full:16} \
+  > "$OUT/frozen.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "frozen launch benchmark exit $rc"
+}
+[ -n "${REPRO_SPP:-}" ] && {
+stamp "two runs of the same render (benchmarks/repro_check.py, spp ${REPRO_SPP}, default launch)"
+timeout 200 python3 benchmarks/repro_check.py --spp $REPRO_SPP --out "$OUT/repro" > "$OUT/repro.txt" 2>&1
+rc=$?; [ $rc -eq 0 ] || fail=1
+stamp "repro check exit $rc"
 }
 cat "$OUT/bench/render_gpu.md" 2>/dev/null | tail -30
 cat "$OUT/steps.txt"

@@ -41,6 +41,10 @@ Sections
    (``--wait-frames`` frames rendered the way each version renders them:
    one launch plus 1/``VERIFY_EVERY`` of a verification launch now; two halves before).
    **Extrapolated** from those frames.
+
+Every section renders with the film launch (``launch="film"``, :func:`_film`), the default before
+2026-11-26, so that its figures stay comparable run to run; the default launch now (``auto``: the frozen
+launch on LLVM and CUDA) is timed against it by ``benchmarks/render_frozen.py``.
 """
 
 from __future__ import annotations
@@ -69,6 +73,17 @@ LUX = (1.0, 5.0, 50.0)
 def _quiet():
     import warnings
     warnings.filterwarnings("ignore")
+
+
+def _film():
+    """``{"launch": "film"}`` where the code measured has a choice of launch (since 2026-11-26 the default is
+    ``auto``, the frozen launch on LLVM and CUDA), else ``{}``: this benchmark times Mitsuba's own render,
+    its bare blocks are ``mi.render`` of the pipeline's loaded scene, and ``--old`` runs older code that
+    has no ``launch``. The frozen launch, and the job with it against the same bare launch:
+    ``benchmarks/render_frozen.py --pipeline``."""
+    import inspect
+    from render2spike.render.renderer import SceneRenderer
+    return {"launch": "film"} if "launch" in inspect.signature(SceneRenderer).parameters else {}
 
 
 def _load(name, sets=(), lux=None, duration_s=None):
@@ -117,7 +132,7 @@ def m_overhead(cfg):
         try:
             d = point_dir / f"block{next(block_no)}"
             t_all = time.perf_counter()
-            res = render_scene(sc, d, progress=False, log=lambda *a: None)
+            res = render_scene(sc, d, progress=False, log=lambda *a: None, **_film())
             t_end, c_end = time.perf_counter(), time.process_time()
         finally:
             rmod.SceneRenderer.render_frame = orig
@@ -230,7 +245,7 @@ def m_keyframes(cfg):
                duration_s=cfg.get("duration_s"))
     with tempfile.TemporaryDirectory() as d:
         t = time.perf_counter()
-        res = render_scene(sc, d, progress=False, log=lambda *a: None)
+        res = render_scene(sc, d, progress=False, log=lambda *a: None, **_film())
         wall = time.perf_counter() - t
     ts = res.manifest.get("temporal_sampling", {})
     return {"scene": cfg["scene"], "lux": cfg["lux"], "spp": int(res.spp), "duration_s": sc.duration_s,
@@ -273,7 +288,7 @@ def m_noise(cfg):
     _quiet()
     sc = _load(cfg["scene"], ["render.noise.max_spp=1024"] + list(cfg.get("sets", [])), lux=cfg["lux"])
     t = time.perf_counter()
-    rnd = SceneRenderer(sc)
+    rnd = SceneRenderer(sc, **_film())
     spp, b, W, K, version = _budget(rnd, sc)
     setup = time.perf_counter() - t
     rs = rnd.rate_scale()

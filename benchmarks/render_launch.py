@@ -88,7 +88,9 @@ def _renderer(scene: str, sets: list[str], n: int):
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
     rate = float(load_scene(scene, list(sets)).render["keyframe_rate_hz"])
-    rnd = SceneRenderer(load_scene(scene, list(sets), duration_s=(n - 1) / rate))
+    import inspect  # the film launch (what this splits up), where the code has a choice (the default is auto)
+    film = {"launch": "film"} if "launch" in inspect.signature(SceneRenderer).parameters else {}
+    rnd = SceneRenderer(load_scene(scene, list(sets), duration_s=(n - 1) / rate), **film)
     return rnd, [i / rate for i in range(n)]
 
 

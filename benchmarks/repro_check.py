@@ -33,9 +33,9 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
 
-def _render(scene: str, spp: int, variant: str | None, duration_s: float, out: Path) -> float:
+def _render(scene: str, spp: int, variant: str | None, duration_s: float, out: Path, launch: str = "auto") -> float:
     cmd = [sys.executable, "-m", "render2spike", "render", scene, "--out", str(out), "--spp", str(spp),
-           "--duration", str(duration_s), "--set", "render.adaptive.enabled=false", "--quiet"]
+           "--duration", str(duration_s), "--set", "render.adaptive.enabled=false", "--quiet", "--launch", launch]
     if variant:
         cmd += ["--variant", variant]
     t0 = time.perf_counter()
@@ -79,12 +79,12 @@ def write_report(out: Path, meta: dict, rows: list[dict]) -> Path:
     write_json_atomic(out / "repro.json", {"meta": meta, "rows": rows})
     lines = ["# Two runs of the same render command", "",
              f"`{meta['command']}`, {meta['date']}, {meta['machine']}", "",
-             "| variant | scene | spp | frames bitwise equal | values differing | max relative difference | "
+             "| variant | launch | scene | spp | frames bitwise equal | values differing | max relative difference | "
              "manifest frames / reference equal | wall s (run 1, 2) | load before / after |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         load = " / ".join(", ".join(f"{x:.2f}" for x in r[k]) for k in ("load_before", "load_after"))
-        lines.append(f"| {r['variant']} | {r['scene']} | {r['spp']} | {r['frames_bitwise_equal']} / {r['frames']} | "
+        lines.append(f"| {r['variant']} | {r.get('launch', 'film')} | {r['scene']} | {r['spp']} | {r['frames_bitwise_equal']} / {r['frames']} | "
                      f"{r['pixel_values_differing']} / {r['pixel_values_compared']} | {r['max_rel_diff']:.3g} | "
                      f"{'yes' if r['manifest_frames_equal'] else 'NO'} / {'yes' if r['reference_equal'] else 'NO'} | "
                      f"{r['wall_s'][0]:.1f}, {r['wall_s'][1]:.1f} | {load} |")
@@ -99,6 +99,8 @@ def main(argv=None):
     ap.add_argument("--variant", default=None, help="Mitsuba variant (default: the automatic choice)")
     ap.add_argument("--spp", type=int, nargs="+", default=[64, 256, 1024], help="samples per pixel (default 64 256 1024)")
     ap.add_argument("--duration", type=float, default=0.004, help="camera seconds rendered per run (default 0.004)")
+    ap.add_argument("--launch", default="auto", choices=("auto", "film", "frozen"),
+                    help="the render's --launch (default auto: frozen on LLVM and CUDA variants)")
     ap.add_argument("--out", default=str(HERE / "results" / "repro"))
     a = ap.parse_args(argv)
     if min(a.spp) < 1 or not a.duration > 0:
@@ -117,20 +119,22 @@ def main(argv=None):
         lb = tuple(round(x, 2) for x in os.getloadavg())
         with tempfile.TemporaryDirectory(prefix="r2s-repro-") as tmp:
             try:
-                walls = [_render(a.scene, spp, a.variant, a.duration, Path(tmp) / f"run{i}") for i in (1, 2)]
+                walls = [_render(a.scene, spp, a.variant, a.duration, Path(tmp) / f"run{i}", a.launch)
+                         for i in (1, 2)]
             except RuntimeError as exc:  # the render's own message (file, field, what was expected)
                 print(f"repro_check.py: error at spp {spp}: {exc}", file=sys.stderr)
                 return 2
             man = json.loads((Path(tmp) / "run1" / "frames.json").read_text())
             row = {"scene": a.scene, "spp": spp, "wall_s": walls, "load_before": lb,
                    "load_after": tuple(round(x, 2) for x in os.getloadavg()), "variant": man.get("variant"),
+                   "launch": man.get("launch", "film"),
                    **compare(Path(tmp) / "run1", Path(tmp) / "run2")}
         rows.append(row)
         write_report(out, meta, rows)
         print(f"spp {spp}: {row['frames_bitwise_equal']}/{row['frames']} frames bitwise equal, "
               f"{row['pixel_values_differing']} of {row['pixel_values_compared']} values differ, "
               f"max rel diff {row['max_rel_diff']:.3g}, manifest frames equal {row['manifest_frames_equal']}, "
-              f"reference equal {row['reference_equal']} ({row['variant']}; load {lb})", flush=True)
+              f"reference equal {row['reference_equal']} ({row['variant']}, {row['launch']} launch; load {lb})", flush=True)
     print(f"wrote {out / 'repro.md'}")
     return 0
 

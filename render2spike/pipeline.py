@@ -103,20 +103,22 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
 
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
-                 dat: bool = False, variant: str | None = None, log=print, launch: str = "film") -> dict:
+                 dat: bool = False, variant: str | None = None, log=print, launch: str = "auto") -> dict:
     """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary.
 
     ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). ``variant``: the Mitsuba
     variant, as :func:`render2spike.render.backend.mitsuba` takes it (None: ``$RENDER2SPIKE_VARIANT``, else the
     automatic choice; ``"auto"``: the automatic choice). ``launch``: how each frame's render is launched
-    (``film`` or ``frozen``, :func:`render2spike.render.job.render_scene`). Rerunning into ``out``
+    (``auto``, ``film`` or ``frozen``, :func:`render2spike.render.job.render_scene`; the summary records
+    the launch taken). Rerunning into ``out``
     resumes the render; an ``out`` whose summary records another scene, model, seed or profile is refused
     (InputError) unless ``overwrite``.
     """
     from sensor.errors import InputError
     from sensor.spikefile import write_spikes
 
-    from .render.job import render_scene, settings_of
+    from .render.frozen import check_launch
+    from .render.job import launch_taken, render_scene
     from .render.scene import load_scene
 
     out = Path(out)
@@ -125,9 +127,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         raise InputError("exists and is not a folder", path=out, field="--out")
     from sensor.lock import sweep_parts
     sweep_parts(out, log=log)
-    from .render.frozen import LAUNCHES
-    if launch not in LAUNCHES:
-        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
+    check_launch(launch)
     sc = load_scene(scene, sets, lux=lux, duration_s=duration_s, profile=profile)
     old = None
     if (out / "summary.json").is_file() and not overwrite:
@@ -136,17 +136,18 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         except (OSError, ValueError):
             old = {}
         from .render import backend
-        now = {"scene_hash": sc.content_hash(settings_of(sc, backend.mitsuba(variant).variant(), launch)), "model": model,
-               "seed": seed, "profile": sc.profile.name}
+        used = backend.mitsuba(variant).variant()
+        was_launch = old.get("launch") or "film"
+        taken, h = launch_taken(sc, used, launch, old.get("scene_hash"), was_launch)
+        now = {"scene_hash": h, "model": model, "seed": seed, "profile": sc.profile.name}
         diff = [k for k in now if old.get(k) != now[k]]
         if diff:
             hint = ""
-            was, used = old.get("variant"), backend.mitsuba(variant).variant()
+            was = old.get("variant")
             if was and backend.variant_family(was) != backend.variant_family(used):
                 hint = f"; it was rendered with Mitsuba '{was}', this run uses '{used}': pass --variant {was} to resume it"
-            was_launch = old.get("launch") or "film"
-            if "scene_hash" in diff and was_launch != launch:
-                hint += (f"; it was rendered with the {was_launch} launch, this run uses the {launch} launch: "
+            if "scene_hash" in diff and was_launch != taken and launch != "auto":
+                hint += (f"; it was rendered with the {was_launch} launch, this run uses the {taken} launch: "
                          f"pass --launch {was_launch} to resume it")
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)

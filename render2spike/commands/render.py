@@ -24,9 +24,10 @@ Keyframes start at --keyframe-rate and are refined where the irradiance changes
 by more than the scene's tolerance between neighbours. Samples per pixel are
 chosen so render noise stays below photon shot noise (over a 64-interval
 window) unless --spp is given. Rerunning the same command resumes (the result
-is an uninterrupted render's, to float round-off: at high spp a pixel may differ
-in its last bits run to run, rarely on the CPU, often on a GPU, whose film sums are
-atomic); a changed scene or setting is
+is an uninterrupted render's, bit for bit with the default frozen launch on the CPU
+and on a GPU; with --launch film only to float round-off: at high spp a pixel may
+differ in its last bits run to run, rarely on the CPU, often on a GPU, whose film
+sums are atomic); a changed scene or setting is
 refused unless --overwrite. While it renders, the folder is locked: a second
 render into it is refused, naming the first (pid, host, start time).
 Frame files are named by time (frame_TTTTTTTT.exr, the tick on the finest
@@ -66,14 +67,16 @@ def add_scene_options(p) -> None:
                         "$RENDER2SPIKE_VARIANT if set, else auto; this option wins over the variable. The variant's "
                         "back end (cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends "
                         "are never mixed in one folder, and a rerun must ask for the same back end to resume")
-    from render2spike.render.frozen import LAUNCHES
-    p.add_argument("--launch", default="film", choices=LAUNCHES,
-                   help="how each frame's render is launched. film (default): the path integrator renders into "
-                        "Mitsuba's spectral film, traced anew every frame. frozen: the launch is recorded once "
-                        "with drjit.freeze and replayed (own camera rays, wavelength sampling and per-pixel sums "
-                        "around the same integrator; LLVM or CUDA variants): the same channels and units, another "
-                        "Monte Carlo estimate, faster per frame (docs/performance.md, \"The frozen launch\"); "
-                        "not yet run on a GPU. Part of the folder's scene hash, like the variant")
+    from render2spike.render.frozen import DEFAULT_LAUNCH, LAUNCHES
+    p.add_argument("--launch", default=DEFAULT_LAUNCH, choices=LAUNCHES,
+                   help="how each frame's render is launched. frozen: the launch is recorded once with "
+                        "drjit.freeze and replayed (own camera rays, wavelength sampling and per-pixel sums around "
+                        "the same integrator; LLVM or CUDA variants only), faster per frame. film: the path "
+                        "integrator renders into Mitsuba's spectral film, traced anew every frame. The same "
+                        "channels in the same units, two Monte Carlo estimates of them (docs/render.md, \"The "
+                        "frozen launch\"). auto (default): frozen on LLVM and CUDA variants, film on a scalar one; "
+                        "resuming a folder, the launch its frames were rendered with. Part of the folder's scene "
+                        "hash, like the variant")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 

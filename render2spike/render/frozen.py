@@ -28,13 +28,29 @@ what the camera and the ``specfilm`` did, in Dr.Jit, around the scene integrator
    film launch.
 3. **Per-pixel sums** with ``drjit.block_reduce`` (its evaluated mode) over each pixel's ``spp``
    consecutive samples (box filter: every sample lands in its own pixel, weight 1), divided by
-   ``spp``. No atomic adds: the sum's order is fixed, so a GPU should give the same frame on every
-   run too (not yet measured on one). The price: the samples' channel values are held in memory
-   before the sums, 8 bytes a sample (0.8 GB at 250 x 400 and 1024 spp); a launch of 2^32 samples
-   or more is refused.
+   ``spp``. No atomic adds: the sum's order is fixed, so a GPU gives the same frame on every run
+   too (measured on an H100: every value of 5 frames equal in two runs at 64, 256 and 1024 spp,
+   ``benchmarks/results/gpu_2026-11-26/h100_frozen_run2/repro``; the film launch's atomic sums left
+   1.4-64 % of the values differing there). The price: the samples' channel values are held in memory
+   before the sums, 8 bytes a sample, so the renderer takes a frame of more than
+   :data:`MAX_SAMPLES_PER_LAUNCH` samples (512 MiB of them; 671 spp at 250 x 400) in several
+   launches of at most that many, each with its own seed
+   (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`); a launch of 2^32 samples or
+   more (a sensor of that many pixels at 1 spp) is refused.
+4. **Moving meshes as instances.** The film launch moves a mesh (a ``cube`` or a mesh file) by
+   rewriting its vertices. Replays after such a rewrite traced a stale acceleration structure on
+   the LLVM variant: the bundled ``translating_object`` had wrong geometry in 4 to 8 of 12 frames
+   (``benchmarks/frozen_replay_check.py --as-vertices``; on an H100 the CUDA variant's replays were
+   right). So the frozen launch loads each moving mesh as an ``instance`` of a one-shape
+   ``shapegroup`` and moves it by the instance's ``to_world``, as it moves a rectangle or the camera
+   (:func:`instance_moving_meshes`; every replay then equals the unfrozen function, on both back
+   ends). A moving mesh that emits light cannot be instanced: ``auto`` takes the film launch for
+   its scene (:func:`frozen_obstacle`).
 
 The result is the pair of raw channels (``Phi``, ``E``) that the film launch gives, in the same
-units, so :mod:`.photometry` applies unchanged. :class:`FrozenLaunch` keeps one frozen function;
+units, so :mod:`.photometry` applies unchanged. It is the default (``launch="auto"``,
+:func:`resolve_launch`) on Mitsuba's LLVM and CUDA variants since its render tests passed on an H100
+(2026-11-26); the scalar variants, which cannot record, keep the film launch. :class:`FrozenLaunch` keeps one frozen function;
 ``frozen=False`` runs the same function without freezing (the tests hold the two bitwise equal).
 """
 
@@ -46,12 +62,89 @@ import numpy as np
 GRID_STEP_NM = 1.0
 #: equal-probability parts of the wavelength density (``lambda_j`` table of ``N_QUANTILES + 1`` points)
 N_QUANTILES = 4096
-#: how a frame is launched (:class:`render2spike.render.renderer.SceneRenderer`): ``film`` (the integrator's
-#: own render into Mitsuba's ``specfilm``; the default) or ``frozen`` (this module)
-LAUNCHES = ("film", "frozen")
+#: how a frame is launched (:class:`render2spike.render.renderer.SceneRenderer`): ``auto`` (the default:
+#: :func:`resolve_launch`), ``film`` (the integrator's own render into Mitsuba's ``specfilm``) or ``frozen``
+#: (this module)
+LAUNCHES = ("auto", "film", "frozen")
+#: the launch taken when none is named, the same in code, CLI and docs
+DEFAULT_LAUNCH = "auto"
 #: the frozen launch's estimator, in the frames' scene hash: a change to how it samples or sums (grid, table,
-#: order of the sampler's dimensions) must bump it, so that no folder mixes frames of two estimators
-ESTIMATOR_VERSION = 1
+#: order of the sampler's dimensions, how a sample count is split into launches) must bump it, so that no
+#: folder mixes frames of two estimators. 2: launches of more than :data:`MAX_SAMPLES_PER_LAUNCH` samples are
+#: split (1 took any count below 2^32 in one launch)
+ESTIMATOR_VERSION = 2
+#: the most samples one frozen launch takes (2^26: 512 MiB of held channel values, 8 bytes a sample); a frame
+#: that needs more is taken in several launches of at most this many, each with its own seed
+#: (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`). A constant, not the machine's memory:
+#: the split is part of the estimator, so frames do not depend on where they were rendered
+MAX_SAMPLES_PER_LAUNCH = 1 << 26
+
+
+def check_launch(launch: str) -> str:
+    """``launch`` if it is one of :data:`LAUNCHES`; else :class:`sensor.errors.InputError` listing them."""
+    if launch not in LAUNCHES:
+        from sensor.errors import InputError
+        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
+    return launch
+
+
+def resolve_launch(launch: str, variant: str, scene=None) -> str:
+    """The launch a render with ``variant`` (a Mitsuba variant name) takes when ``launch`` is asked for.
+
+    ``film`` and ``frozen`` are taken as named; ``auto`` is ``frozen`` on Mitsuba's JIT variants
+    (``llvm_*``, ``cuda_*``: ``drjit.freeze`` records there) and ``film`` on the scalar ones (no JIT to
+    record; also the fallback when no libLLVM is found), and ``film`` for a ``scene``
+    (:class:`~render2spike.render.scene.Scene`) the frozen launch cannot render (:func:`frozen_obstacle`).
+    Raises :class:`sensor.errors.InputError` naming the valid choices (:func:`check_launch`) for any other
+    name."""
+    if check_launch(launch) != "auto":
+        return launch
+    if scene is not None and frozen_obstacle(scene):
+        return "film"
+    return "frozen" if str(variant).startswith(("llvm_", "cuda_")) else "film"
+
+
+#: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
+#: launch moves such an object by rewriting its vertices, which a frozen launch's replays do not see: on
+#: Mitsuba 3.9.1's LLVM variant they traced against a stale acceleration structure (wrong geometry in 4 to
+#: 8 of 12 frames of ``translating_object``, unless Dr.Jit happened to record again). The frozen launch
+#: moves a moving mesh as an instance of a shape group instead, whose ``to_world`` it updates as it does a
+#: rectangle's (:func:`instance_moving_meshes`)
+MESH_TYPES = ("cube", "ply", "obj", "serialized")
+
+
+def frozen_obstacle(scene) -> str | None:
+    """Why the frozen launch cannot render ``scene``, or None: a moving mesh that emits light (Mitsuba
+    cannot instance an emitter, and a moving mesh is an instance in the frozen launch)."""
+    from .builder import object_motion
+    for i, obj in enumerate(scene.data["objects"]):
+        if obj["shape"] in ("cube", "mesh") and "emitter" in obj and not object_motion(obj, f"objects.{i}.").is_static:
+            return (f"object '{obj['name']}' (objects.{i}) is a moving mesh that emits light, which the frozen "
+                    "launch cannot move (it moves meshes as instances; Mitsuba cannot instance an emitter)")
+    return None
+
+
+def instance_moving_meshes(scene_dict: dict, motions: dict) -> list[str]:
+    """Make every moving mesh of the scene builder's dict an ``instance`` of a one-shape ``shapegroup``, in place.
+
+    ``motions``: ``{key: (motion, shape matrix)}`` from the builder. The mesh keeps its BSDF and moves to
+    the group (key ``KEY__mesh``, no ``to_world`` of its own); the instance takes the object's key and its
+    ``to_world``, so the renderer finds ``KEY.to_world`` to update. -> the keys made instances. Raises
+    ``ValueError`` for a moving mesh with an emitter (:func:`frozen_obstacle`)."""
+    done = []
+    for key, (motion, _) in motions.items():
+        od = scene_dict.get(key)
+        if motion.is_static or not isinstance(od, dict) or od.get("type") not in MESH_TYPES:
+            continue
+        if "emitter" in od:
+            raise ValueError(f"object '{key}' is a moving mesh that emits light: the frozen launch cannot move it")
+        mesh = dict(od)
+        to_world = mesh.pop("to_world")
+        scene_dict[f"{key}__group"] = {"type": "shapegroup", f"{key}__mesh": mesh}
+        scene_dict[key] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"{key}__group"},
+                           "to_world": to_world}
+        done.append(key)
+    return done
 
 
 def response_tables(curves: dict[str, tuple[np.ndarray, np.ndarray]], step_nm: float = GRID_STEP_NM,

@@ -29,7 +29,8 @@ LLVM backend was seen to differ in the last bit of 1 of 6,144 pixels in 2 of 10 
 run to run; at 16 spp no difference was seen; on an H100, 1.4-64 % of the values differed by up to
 2-16 float32 ulps at 64-1024 spp, ``benchmarks/repro_check.py``; the frozen launch sums each pixel's samples
 in a fixed order, see :mod:`.frozen`). If the scene, a setting, the profile,
-the Mitsuba variant or the launch changed (a different hash), the folder is refused, or with
+the Mitsuba variant or the launch changed (a different hash; ``launch="auto"`` takes the folder's own
+launch, :func:`launch_taken`), the folder is refused, or with
 ``overwrite=True`` emptied of our files and rendered anew: frames of two scenes
 are never mixed.
 
@@ -58,6 +59,7 @@ from sensor.frames import MANIFEST_NAME, manifest_record, read_frame
 from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
+from .frozen import DEFAULT_LAUNCH, check_launch, resolve_launch
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
 from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
 from .scene import Scene
@@ -213,9 +215,9 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     # launch (frozen.LAUNCHES): the frozen launch makes other Monte Carlo estimates than the film's, so its
     # frames get their own hash, with its estimator's version; the film launch adds nothing (the hashes of
     # folders made before it stay valid)
-    from .frozen import ESTIMATOR_VERSION, LAUNCHES
-    if launch not in LAUNCHES:
-        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
+    from .frozen import ESTIMATOR_VERSION, check_launch
+    if check_launch(launch) == "auto":
+        raise ValueError("settings_of takes the launch a render takes (frozen.resolve_launch), not 'auto'")
     auto = scene.render.get("spp") == "auto"
     out = {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
            "procedure": 3 if auto else 2}
@@ -225,12 +227,33 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     return out
 
 
+def launch_taken(scene: Scene, variant: str, launch: str, old_hash: str | None = None,
+                 old_launch: str | None = None) -> tuple[str, str]:
+    """The launch a render of ``scene`` with ``variant`` takes when ``launch`` is asked for, and its scene hash.
+
+    ``film`` and ``frozen`` are taken as named; ``auto`` as :func:`.frozen.resolve_launch` says, except
+    that a folder already holding frames (its ``old_hash``, rendered with ``old_launch``) that differ
+    from this run's by the launch alone keeps its launch: a folder rendered before ``auto`` was the
+    default, or with the other launch, is resumed, not refused.
+    """
+    from .frozen import resolve_launch
+    taken = resolve_launch(launch, variant, scene)
+    h = scene.content_hash(settings_of(scene, variant, taken))
+    if launch == "auto" and old_hash and old_hash != h and old_launch in ("film", "frozen") and old_launch != taken:
+        h_old = scene.content_hash(settings_of(scene, variant, old_launch))
+        if h_old == old_hash:
+            return old_launch, h_old
+    return taken, h
+
+
 def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool = True, variant: str | None = None,
-                 log=print, launch: str = "film") -> RenderResult:
+                 log=print, launch: str = DEFAULT_LAUNCH) -> RenderResult:
     """Render ``scene`` into the frames folder ``out`` (resuming if possible). See the module docstring.
 
-    ``launch``: how each render is launched (:data:`.renderer.LAUNCHES`: ``film``, the default, or
-    ``frozen``, :mod:`.frozen`); part of the folder's hash, so a folder is resumed only by the same launch.
+    ``launch``: how each render is launched (:data:`.frozen.LAUNCHES`: ``auto``, the default, ``film``
+    or ``frozen``, :mod:`.frozen`; :func:`launch_taken` says which ``auto`` takes); part of the folder's
+    hash, so a folder is resumed only by the launch it was rendered with (``auto`` takes that one).
+    The launch taken is in the manifest, the render state and every frame's header.
 
     Raises :class:`sensor.errors.InputError` (before anything is written) for a folder of another scene
     (without ``overwrite``), a folder another render is writing into, or a scene with no usable light.
@@ -258,18 +281,19 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
 
 
 def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, variant, log, wrote,
-                   launch: str = "film") -> RenderResult:
+                   launch: str = DEFAULT_LAUNCH) -> RenderResult:
     t_start = time.perf_counter()
-    from .frozen import LAUNCHES
-    if launch not in LAUNCHES:
-        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
+    asked = check_launch(launch)
     mi = backend.mitsuba(variant)
     variant = mi.variant()
-    scene_hash = scene.content_hash(settings_of(scene, variant, launch))
     manifest = _read_json(out / MANIFEST_NAME)
     manifest = manifest if isinstance(manifest, dict) else None
     state = load_state(out)
     old_hash = (manifest or {}).get("scene_hash") or (state or {}).get("scene_hash")
+    old_launch = (manifest or {}).get("launch") or (state or {}).get("launch") or "film"
+    launch, scene_hash = launch_taken(scene, variant, asked, None if overwrite else old_hash, old_launch)
+    if asked == "auto" and old_hash == scene_hash and launch != resolve_launch(asked, variant, scene):
+        log(f"render: {out} holds frames of the {launch} launch: resuming with it (--launch auto)")
     if old_hash is not None and old_hash != scene_hash:
         if not overwrite:
             old_variant = (manifest or {}).get("variant") or (state or {}).get("variant")
@@ -277,8 +301,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             if old_variant and backend.variant_family(old_variant) != backend.variant_family(variant):
                 hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
                         f"--variant {old_variant} to resume it.")
-            old_launch = (manifest or {}).get("launch") or (state or {}).get("launch") or "film"
-            if old_launch != launch:
+            if old_launch != launch and asked != "auto":  # (auto would have taken the folder's launch)
                 hint += (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
                          f"pass --launch {old_launch} to resume it.")
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "

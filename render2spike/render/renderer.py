@@ -27,7 +27,7 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, SENSOR_KEY, build_dict, to_transform
-from .frozen import LAUNCHES  # ``film`` or ``frozen``
+from .frozen import DEFAULT_LAUNCH, MAX_SAMPLES_PER_LAUNCH, check_launch, instance_moving_meshes, resolve_launch
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
                          warn_if_reference_shadowed)
 from .scene import Scene, spectrum_curve
@@ -49,6 +49,15 @@ def _check_frozen_camera(cam: dict) -> None:
                            f"the scene builder made {cam!r}: use --launch film, or extend frozen.py")
 
 
+def _check_frozen_motion(moving: dict) -> None:
+    """The frozen launch's replays do not see a mesh moved by its vertices (:data:`.frozen.MESH_TYPES`):
+    refuse any, so that a change to the builder cannot make its frames silently wrong."""
+    vertex_moved = [k for k, v in moving.items() if v[0] == "vertices"]
+    if vertex_moved:
+        raise RuntimeError(f"the frozen launch cannot move {vertex_moved} by their vertices: make them instances "
+                           "(frozen.instance_moving_meshes, frozen.MESH_TYPES), or use --launch film")
+
+
 def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
     """``n`` 32-bit render seeds for the frame at ``t_s`` [s], derived from the base seed and the time in ns."""
     ss = np.random.SeedSequence([int(base_seed), int(round(float(t_s) * 1e9)) & 0xFFFFFFFFFFFF])
@@ -67,25 +76,30 @@ class SceneRenderer:
         A light-level measurement made earlier (:meth:`measure_reference`, stored in a
         frames folder's render state): reused instead of measuring again, so frames of a
         resumed render share one emitter scale.
-    launch : {"film", "frozen"}
-        How each render is launched (:data:`LAUNCHES`): ``film`` calls the integrator's ``render``
+    launch : {"auto", "film", "frozen"}
+        How each render is launched (:data:`.frozen.LAUNCHES`): ``film`` calls the integrator's ``render``
         into Mitsuba's spectral film; ``frozen`` records the launch once with ``drjit.freeze`` and
         replays it (:mod:`.frozen`): the same channels in the same units, another Monte Carlo
-        estimate, without the per-launch tracing on the host.
+        estimate, without the per-launch tracing on the host; ``auto`` (the default) is ``frozen`` on
+        an LLVM or CUDA variant and ``film`` on a scalar one (:func:`.frozen.resolve_launch`).
+        :attr:`launch_kind` is the launch taken.
     """
 
     def __init__(self, scene: Scene, variant: str | None = None, calibration: dict | None = None,
-                 launch: str = "film"):
-        if launch not in LAUNCHES:
-            raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
+                 launch: str = DEFAULT_LAUNCH):
+        check_launch(launch)
         self.scene = scene
-        self.launch_kind = launch
         self.mi = mi = backend.mitsuba(variant)
         self.variant = mi.variant()
+        self.launch_kind = launch = resolve_launch(launch, self.variant, scene)
         t0 = time.perf_counter()
         d, self.motions = build_dict(mi, scene)
         cam_dict = d[SENSOR_KEY]
         if launch == "frozen":  # the camera keeps its pose and sampler; its film is never rendered (frozen.py)
+            try:
+                instance_moving_meshes(d, self.motions)
+            except ValueError as exc:
+                raise InputError(f"{exc}; render it with --launch film", path=scene.path, field="--launch") from exc
             _check_frozen_camera(cam_dict)
             film = cam_dict["film"]
             curves = {c: tuple(np.array([float(x) for x in film[c][k].split(",")]) for k in ("wavelengths", "values"))
@@ -133,6 +147,8 @@ class SceneRenderer:
             else:
                 raise InputError(f"object '{key}' cannot be moved: Mitsuba exposes neither to_world nor "
                                  "vertex_positions for it", path=scene.path, field=f"objects.{key}.motion")
+        if launch == "frozen":
+            _check_frozen_motion(self._moving)
         cam = scene.camera
         prof = scene.profile
         self.height, self.width = prof.height, prof.width
@@ -260,15 +276,23 @@ class SceneRenderer:
         """Sample counts of the launches that together take exactly ``spp`` samples per pixel.
 
         One launch when the sampler takes ``spp`` exactly (always so for the noise budget's
-        choice); otherwise the largest exact counts first (e.g. 17 -> [16, 1]).
+        choice); otherwise the largest exact counts first (e.g. 17 -> [16, 1]). With the frozen
+        launch, no launch takes more than :data:`.frozen.MAX_SAMPLES_PER_LAUNCH` samples where one
+        sample per pixel fits (its memory is 8 bytes a sample): a larger count is taken in ``k`` parts
+        of about ``spp / k`` each, the fewest that fit, split the same way (e.g. 1024 spp at 250 x 400
+        -> [506, 506, 12] with the stratified sampler; equal parts share one recording).
         """
         from .noise import exact_below
         cache = self.__dict__.setdefault("_launch_cache", {})
         spp = max(1, int(spp))
         if spp not in cache:
+            part = spp
+            if self.launch_kind == "frozen":
+                cap = max(1, MAX_SAMPLES_PER_LAUNCH // (self.scene.profile.height * self.scene.profile.width))
+                part = -(-spp // -(-spp // cap))  # ceil(spp / k), k = ceil(spp / cap) parts
             out, left = [], spp
             while left > 0:
-                n = exact_below(self.effective_spp, left)
+                n = exact_below(self.effective_spp, min(left, part))
                 out.append(n)
                 left -= n
             cache[spp] = out

@@ -21,7 +21,7 @@ def _renderer(write_scene, objects=None):
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
     changes = {"objects": objects, "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}} if objects else None
-    return SceneRenderer(load_scene(write_scene(changes)))
+    return SceneRenderer(load_scene(write_scene(changes)), launch="film")  # the film launch's own paths
 
 
 @needs_mitsuba

@@ -167,6 +167,51 @@ def test_frozen_replays_are_the_unfrozen_function_bitwise(write_scene):
     assert not np.array_equal(frozen[0]["Phi"], frozen[4]["Phi"])
 
 
+def test_a_moving_mesh_is_an_instance_and_every_replay_traces_its_pose():
+    # The film launch moves a mesh by rewriting its vertices; frozen replays after such a rewrite traced a stale
+    # structure on Mitsuba 3.9.1's LLVM variant (on the bundled translating_object: wrong geometry in 4 to 8
+    # of 12 frames, run to run, unless Dr.Jit happened to record again). The frozen launch moves meshes as instances: each
+    # replay, one per new pose, must be the unfrozen function at that pose, frame after frame
+    from render2spike.render.frozen import FrozenLaunch
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    _collect()
+    sc = load_scene("translating_object")
+    r = SceneRenderer(sc, launch="frozen")
+    assert r._moving["cube"][:2] == ("to_world", "cube.to_world")  # an instance's transform, not vertices
+    fl = r._frozen
+    ref = FrozenLaunch(r.mi, r._dr, r.mi_scene, fl.height, fl.width, 1.0, 1.0, 2.0,
+                       {"Phi": (np.array([400.0, 700.0]), np.ones(2))}, "multijitter", frozen=False)
+    ref.__dict__.update({k: v for k, v in fl.__dict__.items() if k not in ("_fn", "frozen")})
+    means = []
+    for k, t_s in enumerate(np.linspace(0.0, sc.duration_s, 9, endpoint=False)):
+        r.set_time(float(t_s))
+        a = fl.channels(fl.launch(100 + k, 4, r._cam_m))["Phi"]
+        b = ref.channels(ref.launch(100 + k, 4, r._cam_m))["Phi"]
+        np.testing.assert_array_equal(a, b, err_msg=f"replay at t = {t_s} s")
+        means.append(a.mean())
+    assert len(set(np.round(means, 12))) > 1  # the cube moved in view
+
+
+def test_a_moving_mesh_that_emits_light_keeps_the_film_launch(write_scene):
+    from render2spike.render.frozen import frozen_obstacle, resolve_launch
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    glow = {**MOVING[1], "emitter": {"strength": 1.0}}
+    sc = load_scene(write_scene({"objects": [MOVING[0], glow], "reference": {"point": [0, 0, 0.05],
+                                                                            "normal": [0, 0, 1]}}))
+    assert "emits light" in frozen_obstacle(sc)
+    assert resolve_launch("auto", "llvm_ad_spectral", sc) == "film"
+    with pytest.raises(InputError, match="--launch film"):
+        SceneRenderer(sc, launch="frozen")
+    still = {**glow}
+    still.pop("motion")
+    sc2 = load_scene(write_scene({"objects": [MOVING[0], still], "reference": {"point": [0, 0, 0.05],
+                                                                             "normal": [0, 0, 1]}}))
+    assert frozen_obstacle(sc2) is None and resolve_launch("auto", "llvm_ad_spectral", sc2) == "frozen"
+
+
 def test_frozen_frames_estimate_what_the_film_frames_estimate(write_scene):
     # Both launches are unbiased estimates of the same channels, so with the same seeds the difference of a
     # frozen and a film render has mean 0, and the n renders' differences are independent. The same seeds draw
@@ -262,7 +307,7 @@ def test_a_live_film_scene_gives_a_clear_error_not_a_wrong_frame(tmp_path, write
         "from render2spike.render.scene import load_scene\n"
         "from sensor.errors import DependencyError\n"
         f"sc = load_scene({str(path)!r})\n"
-        "film = SceneRenderer(sc)\n"
+        "film = SceneRenderer(sc, launch='film')\n"
         "r = SceneRenderer(sc, launch='frozen', calibration=film.calibration)\n"
         "try:\n"
         "    r.render_exact(0.0, [1], 4)\n"
@@ -277,20 +322,86 @@ def test_a_live_film_scene_gives_a_clear_error_not_a_wrong_frame(tmp_path, write
 
 def test_cli_launch_option_reaches_the_frames_and_the_run_summary(tmp_path, write_scene, capsys):
     from render2spike.cli import main
-    path = write_scene()
-    assert main(["render", str(path), "--out", str(tmp_path / "f"), "--spp", "4", "--launch", "frozen",
-                 "--quiet"]) == 0
-    assert json.loads((tmp_path / "f" / "frames.json").read_text())["launch"] == "frozen"
-    assert main(["run", str(path), "--out", str(tmp_path / "r"), "--spp", "4", "--launch", "frozen",
-                 "--quiet"]) == 0
-    assert json.loads((tmp_path / "r" / "summary.json").read_text())["launch"] == "frozen"
+    from render2spike.pipeline import run_pipeline
+    from render2spike.render.backend import mitsuba
+    from render2spike.render.frozen import resolve_launch
     from sensor.errors import InputError
-    with pytest.raises(InputError, match="--launch frozen to resume"):  # the run's folder names its launch
-        from render2spike.pipeline import run_pipeline
-        run_pipeline(path, tmp_path / "r", sets=["render.spp=4"], progress=False, log=lambda *a: None)
+    path = write_scene()
+    auto = resolve_launch("auto", mitsuba().variant())  # frozen on the LLVM and CUDA variants the tests run on
+    assert main(["render", str(path), "--out", str(tmp_path / "f"), "--spp", "4", "--quiet"]) == 0
+    assert json.loads((tmp_path / "f" / "frames.json").read_text())["launch"] == auto
+    assert main(["run", str(path), "--out", str(tmp_path / "r"), "--spp", "4", "--launch", "film",
+                 "--quiet"]) == 0
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["launch"] == "film"
+    # the default (auto) resumes the film run: nothing rendered again, the summary keeps its launch
+    s = run_pipeline(path, tmp_path / "r", sets=["render.spp=4"], progress=False, log=lambda *a: None)
+    assert s["launch"] == "film" and s["frames_rendered_now"] == 0
+    with pytest.raises(InputError, match="--launch film to resume"):  # the run's folder names its launch
+        run_pipeline(path, tmp_path / "r", sets=["render.spp=4"], progress=False, log=lambda *a: None,
+                     launch="frozen")
     with pytest.raises(SystemExit):
         main(["render", str(path), "--out", str(tmp_path / "g"), "--launch", "thawed"])
     assert "invalid choice: 'thawed'" in capsys.readouterr().err
+
+
+def test_auto_takes_the_frozen_launch_on_jit_variants_and_a_folder_its_own_launch(tmp_path, write_scene):
+    from render2spike.render.frozen import resolve_launch
+    from render2spike.render.job import render_scene
+    from render2spike.render.renderer import SceneRenderer
+    from sensor.errors import InputError
+    for v in ("llvm_ad_spectral", "cuda_ad_spectral", "llvm_ad_rgb"):
+        assert resolve_launch("auto", v) == "frozen"
+    assert resolve_launch("auto", "scalar_spectral") == "film"
+    assert resolve_launch("film", "llvm_ad_spectral") == "film"
+    assert resolve_launch("frozen", "scalar_spectral") == "frozen"  # taken as named (the renderer refuses it)
+    with pytest.raises(InputError, match="auto, film, frozen"):
+        resolve_launch("thawed", "llvm_ad_spectral")
+    sc = _scene(write_scene, pan=False)
+    r = SceneRenderer(sc)
+    assert r.launch_kind == resolve_launch("auto", r.variant) and r.launch_kind == "frozen"
+    del r
+    _collect()
+    logs = []
+    film = render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: None, launch="film")
+    again = render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: logs.append(" ".join(map(str, a))))
+    assert again.n_rendered == 0 and again.scene_hash == film.scene_hash and again.manifest["launch"] == "film"
+    assert any("frames of the film launch: resuming with it" in m for m in logs), logs
+    with pytest.raises(InputError, match="--launch film to resume"):
+        render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: None, launch="frozen")
+    # a folder of another scene is still refused under auto, without a launch hint that would not help
+    other = _scene(write_scene, pan=True)
+    with pytest.raises(InputError, match="different scene") as e:
+        render_scene(other, tmp_path / "f", progress=False, log=lambda *a: None)
+    assert "--launch" not in str(e.value)
+
+
+def test_a_frozen_launch_too_big_for_its_memory_cap_is_split_into_seeded_parts(write_scene, monkeypatch):
+    import render2spike.render.renderer as renderer_mod
+    from render2spike.render.renderer import SceneRenderer
+    sc = _scene(write_scene, pan=False)
+    px = sc.profile.height * sc.profile.width
+    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 10 * px)  # at most 10 samples per pixel a launch
+    r = SceneRenderer(sc, launch="frozen")
+    assert r.launch_counts(36) == [9, 9, 9, 9]  # ceil(36 / 10) = 4 parts of 9 (an exact count)
+    for spp in (4, 10, 17, 64, 100):
+        counts = r.launch_counts(spp)
+        assert sum(counts) == spp and max(counts) <= 10 and len(counts) >= -(-spp // 10), (spp, counts)
+    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 30 * px)
+    r.__dict__.pop("_launch_cache")
+    assert r.launch_counts(48) == [24, 24]  # equal parts (one recording), not [30, 16, 2]
+    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 10 * px)
+    r.__dict__.pop("_launch_cache")
+    split = r.render_frame(0.0, 11, 36, variance=True)
+    assert len(set(split["seeds"])) == 4  # each part its own seed
+    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 1 << 26)
+    whole_r = SceneRenderer(sc, launch="frozen", calibration=r.calibration)
+    assert whole_r.launch_counts(36) == [36]
+    whole = whole_r.render_frame(0.0, 12, 36, variance=True)
+    # the split frame estimates the same irradiance: image means within the noise each frame's variance gives
+    diff = split["phi"].mean() - whole["phi"].mean()
+    sd = np.sqrt((split["phi_var"].sum() + whole["phi_var"].sum()) / px ** 2)
+    assert abs(diff) < 4.0 * sd, (diff, sd)
+    assert split["phi"].mean() > 0 and sd > 0
 
 
 def test_a_scalar_variant_is_refused_with_the_launch_to_use(tmp_path, write_scene):
@@ -305,7 +416,36 @@ def test_a_scalar_variant_is_refused_with_the_launch_to_use(tmp_path, write_scen
         "try:\n"
         f"    SceneRenderer(load_scene({str(path)!r}), variant='scalar_spectral', launch='frozen')\n"
         "except InputError as e:\n"
-        "    print('ERROR', e)\n")
+        "    print('ERROR', e)\n"
+        f"print('AUTO', SceneRenderer(load_scene({str(path)!r}), variant='scalar_spectral').launch_kind)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "needs an LLVM or CUDA variant" in out.stdout and "--launch film" in out.stdout, out.stdout
+    assert "AUTO film" in out.stdout, out.stdout  # the default falls back to the film launch there
+
+
+def test_the_replay_check_reports_equal_replays_and_catches_a_wrong_one(tmp_path, monkeypatch):
+    # benchmarks/frozen_replay_check.py: its verdict comes from comparing each replay with the unfrozen function
+    import importlib.util
+    from pathlib import Path
+    from render2spike.render.frozen import FrozenLaunch
+    _collect()
+    spec = importlib.util.spec_from_file_location(
+        "frozen_replay_check", Path(__file__).resolve().parents[2] / "benchmarks" / "frozen_replay_check.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    args = ["--scenes", "translating_object", "--frames", "3", "--spp", "4"]
+    assert mod.main(args + ["--out", str(tmp_path / "a")]) == 0
+    text = (tmp_path / "a" / "frozen_replay.md").read_text()
+    assert "| translating_object |" in text and "cube (to_world)" in text and "| 3 / 3 | 0 0 0 |" in text
+    orig = FrozenLaunch.channels
+
+    def off_when_frozen(self, launched):  # a replay that is not the recorded function
+        out = orig(self, launched)
+        if self._fn != self._launch:  # (bound methods: compared by ==, each access makes a new one)
+            out["Phi"] = out["Phi"] * (1 + 1e-6)
+        return out
+    monkeypatch.setattr(FrozenLaunch, "channels", off_when_frozen)
+    _collect()
+    assert mod.main(args + ["--out", str(tmp_path / "b")]) == 1
+    assert "| 0 / 3 |" in (tmp_path / "b" / "frozen_replay.md").read_text()
