@@ -11,7 +11,7 @@ value by value::
 
 ``--as-vertices`` moves meshes the way the film launch does (rewriting their vertices) instead of as
 instances: what the frozen launch did before 2026-11-26 evening, when this check found its replays wrong
-in 4 to 8 of 12 frames of ``translating_object`` on the LLVM variant. Run it on a GPU to see whether the
+in 4 of 12 frames of ``translating_object`` (8 in some runs) on the LLVM variant. Run it on a GPU to see whether the
 CUDA variant shares that. The frozen launch now refuses vertex motion; this flag switches the refusal off
 for the check alone. Writes ``frozen_replay.json`` and ``frozen_replay.md`` in ``--out``.
 """
@@ -69,7 +69,7 @@ def main(argv=None) -> int:
         ap.error("--frames and --spp take positive counts")
     if a.as_vertices:
         import render2spike.render.renderer as rm
-        rm.instance_moving_meshes = lambda d, m: []
+        rm.instance_moving_meshes = lambda mi, d, m: {}
         rm._check_frozen_motion = lambda moving: None
     res = {"when": time.strftime("%Y-%m-%d %H:%M"), "command": "python benchmarks/frozen_replay_check.py "
            + " ".join(sys.argv[1:] if argv is None else argv), "as_vertices": a.as_vertices,

@@ -101,6 +101,16 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
     return {"png": str(png), "gif": str(gif), "gif_frames": len(gif_frames), "window_intervals": window}
 
 
+def _read_manifest(frames: Path) -> dict:
+    """A frames folder's manifest (``sensor.frames.MANIFEST_NAME``) as a dict; {} when there is none or unreadable."""
+    try:
+        from sensor.frames import MANIFEST_NAME
+        m = json.loads((frames / MANIFEST_NAME).read_text())
+    except (OSError, ValueError):
+        return {}
+    return m if isinstance(m, dict) else {}
+
+
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
                  dat: bool = False, variant: str | None = None, log=print, launch: str = "auto") -> dict:
@@ -136,6 +146,10 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         except (OSError, ValueError):
             old = {}
         from .render import backend
+        fm = _read_manifest(out / "frames")
+        if fm.get("scene_hash"):  # the frames folder rendered since (e.g. by `render --overwrite`) speaks for them
+            old = {**old, **{k: fm[k] for k in ("scene_hash", "variant", "launch") if k in fm},
+                   "launch": fm.get("launch") or "film"}
         used = backend.mitsuba(variant).variant()
         was_launch = old.get("launch") or "film"
         taken, h = launch_taken(sc, used, launch, old.get("scene_hash"), was_launch)

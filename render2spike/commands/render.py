@@ -74,8 +74,9 @@ def add_scene_options(p) -> None:
                         "the same integrator; LLVM or CUDA variants only), faster per frame. film: the path "
                         "integrator renders into Mitsuba's spectral film, traced anew every frame. The same "
                         "channels in the same units, two Monte Carlo estimates of them (docs/render.md, \"The "
-                        "frozen launch\"). auto (default): frozen on LLVM and CUDA variants, film on a scalar one; "
-                        "resuming a folder, the launch its frames were rendered with. Part of the folder's scene "
+                        "frozen launch\"). auto (default): frozen on LLVM and CUDA variants, film on a scalar one "
+                        "and for a scene with a moving mesh that emits light or changes shape; resuming a folder, "
+                        "the launch its frames were rendered with. Part of the folder's scene "
                         "hash, like the variant")
     p.add_argument("--overwrite", action="store_true", help="replace frames of a different scene/settings in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -39,13 +39,16 @@ what the camera and the ``specfilm`` did, in Dr.Jit, around the scene integrator
    more (a sensor of that many pixels at 1 spp) is refused.
 4. **Moving meshes as instances.** The film launch moves a mesh (a ``cube`` or a mesh file) by
    rewriting its vertices. Replays after such a rewrite traced a stale acceleration structure on
-   the LLVM variant: the bundled ``translating_object`` had wrong geometry in 4 to 8 of 12 frames
-   (``benchmarks/frozen_replay_check.py --as-vertices``; on an H100 the CUDA variant's replays were
-   right). So the frozen launch loads each moving mesh as an ``instance`` of a one-shape
-   ``shapegroup`` and moves it by the instance's ``to_world``, as it moves a rectangle or the camera
-   (:func:`instance_moving_meshes`; every replay then equals the unfrozen function, on both back
-   ends). A moving mesh that emits light cannot be instanced: ``auto`` takes the film launch for
-   its scene (:func:`frozen_obstacle`).
+   the LLVM variant: the bundled ``translating_object`` had wrong geometry in 4 of 12 frames in
+   each of three recorded runs (``benchmarks/frozen_replay_check.py --as-vertices``; 8 in some
+   unrecorded ones; on an H100 the CUDA variant's replays were right). So the frozen launch loads
+   each moving mesh, at its t = 0 pose, as an ``instance`` of a one-shape ``shapegroup``, and moves
+   the instance by the transform from that pose to the current one, as it moves a rectangle or the
+   camera (:func:`instance_moving_meshes`, :func:`relative_motion`): every replay then equals the
+   unfrozen function, on both back ends, and the mesh's smooth normals are made from the same
+   world-space vertices as the film launch's. A moving mesh that emits light, or whose motion
+   changes its shape (a scale that changes over time), cannot move that way: ``auto`` takes the
+   film launch for its scene (:func:`frozen_obstacle`).
 
 The result is the pair of raw channels (``Phi``, ``E``) that the film launch gives, in the same
 units, so :mod:`.photometry` applies unchanged. It is the default (``launch="auto"``,
@@ -106,44 +109,86 @@ def resolve_launch(launch: str, variant: str, scene=None) -> str:
 
 #: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
 #: launch moves such an object by rewriting its vertices, which a frozen launch's replays do not see: on
-#: Mitsuba 3.9.1's LLVM variant they traced against a stale acceleration structure (wrong geometry in 4 to
-#: 8 of 12 frames of ``translating_object``, unless Dr.Jit happened to record again). The frozen launch
-#: moves a moving mesh as an instance of a shape group instead, whose ``to_world`` it updates as it does a
-#: rectangle's (:func:`instance_moving_meshes`)
+#: Mitsuba 3.9.1's LLVM variant they traced against a stale acceleration structure (wrong geometry in a third
+#: or more of the frames of ``translating_object``, unless Dr.Jit happened to record again). The frozen launch
+#: moves a moving mesh as an instance of a shape group instead (:func:`instance_moving_meshes`)
 MESH_TYPES = ("cube", "ply", "obj", "serialized")
+#: frame times per camera-second (64 to 8193 in all) at which :func:`frozen_obstacle` checks that a moving
+#: mesh's motion relative to its t = 0 pose is rigid
+RIGID_CHECKS_PER_S = 1000
+
+
+def relative_motion(motion, shape_m: np.ndarray, t_s: float) -> np.ndarray:
+    """A mesh's 4 x 4 transform from its pose at t = 0 to its pose at ``t_s`` [s]: ``M(t) S (M(0) S)^-1``
+    (``motion``: the builder's :class:`~render2spike.render.motion.Motion`, ``shape_m``: its shape matrix
+    ``S``). The identity at t = 0; rigid (a rotation and a translation) for the motions that move a body
+    without deforming it."""
+    return motion.matrix(float(t_s)) @ shape_m @ np.linalg.inv(motion.matrix(0.0) @ shape_m)
+
+
+def _is_rigid(m: np.ndarray, tol: float = 1e-6) -> bool:
+    a = m[:3, :3]
+    return bool(np.allclose(a.T @ a, np.eye(3), rtol=0.0, atol=tol) and np.linalg.det(a) > 0)
 
 
 def frozen_obstacle(scene) -> str | None:
-    """Why the frozen launch cannot render ``scene``, or None: a moving mesh that emits light (Mitsuba
-    cannot instance an emitter, and a moving mesh is an instance in the frozen launch)."""
-    from .builder import object_motion
+    """Why the frozen launch cannot render ``scene``, or None.
+
+    The frozen launch moves a mesh as an instance of its t = 0 pose (:func:`instance_moving_meshes`), so
+    it cannot move a mesh that emits light (Mitsuba cannot instance an emitter) nor one whose motion
+    changes its shape (a scale that changes over time, checked at :data:`RIGID_CHECKS_PER_S` times per
+    camera-second): an instance's transform would carry the t = 0 shading normals along, where the film
+    launch recomputes them from the deformed vertices."""
+    from .builder import object_motion, shape_matrix
+    n = min(8193, max(64, int(np.ceil(float(scene.duration_s) * RIGID_CHECKS_PER_S)) + 1))
+    times = np.linspace(0.0, float(scene.duration_s), n)
     for i, obj in enumerate(scene.data["objects"]):
-        if obj["shape"] in ("cube", "mesh") and "emitter" in obj and not object_motion(obj, f"objects.{i}.").is_static:
-            return (f"object '{obj['name']}' (objects.{i}) is a moving mesh that emits light, which the frozen "
-                    "launch cannot move (it moves meshes as instances; Mitsuba cannot instance an emitter)")
+        if obj["shape"] not in ("cube", "mesh"):
+            continue
+        motion = object_motion(obj, f"objects.{i}.")
+        if motion.is_static:
+            continue
+        where = f"object '{obj['name']}' (objects.{i})"
+        if "emitter" in obj:
+            return (f"{where} is a moving mesh that emits light, which the frozen launch cannot move (it moves "
+                    "meshes as instances; Mitsuba cannot instance an emitter)")
+        sm = shape_matrix(obj)
+        bad = [t for t in times if not _is_rigid(relative_motion(motion, sm, t))]
+        if bad:
+            return (f"{where} is a moving mesh whose motion changes its shape (e.g. at t = {bad[0]:.6g} s: a "
+                    "scale that changes over time), which the frozen launch cannot move as an instance")
     return None
 
 
-def instance_moving_meshes(scene_dict: dict, motions: dict) -> list[str]:
+def _free_key(scene_dict: dict, key: str) -> str:
+    out, k = key, 1
+    while out in scene_dict:
+        k += 1
+        out = f"{key}_{k}"
+    return out
+
+
+def instance_moving_meshes(mi, scene_dict: dict, motions: dict) -> dict:
     """Make every moving mesh of the scene builder's dict an ``instance`` of a one-shape ``shapegroup``, in place.
 
-    ``motions``: ``{key: (motion, shape matrix)}`` from the builder. The mesh keeps its BSDF and moves to
-    the group (key ``KEY__mesh``, no ``to_world`` of its own); the instance takes the object's key and its
-    ``to_world``, so the renderer finds ``KEY.to_world`` to update. -> the keys made instances. Raises
-    ``ValueError`` for a moving mesh with an emitter (:func:`frozen_obstacle`)."""
-    done = []
-    for key, (motion, _) in motions.items():
+    ``mi``: the loaded ``mitsuba`` module. ``motions``: ``{key: (motion, shape matrix)}`` from the builder. The mesh keeps its BSDF and its t = 0
+    pose (its ``to_world``: vertex normals are made from the same world-space vertices as in the film
+    launch) and moves into the group (key ``KEY__mesh``, ``KEY__group``, or with a suffix where the scene
+    has those names); the instance takes the object's key, with an identity ``to_world`` that the renderer
+    sets to :func:`relative_motion` at each time. -> ``{key: (M(0) S)^-1}`` for each mesh made an instance.
+    Raises ``ValueError`` for a moving mesh with an emitter (:func:`frozen_obstacle` says why beforehand)."""
+    done = {}
+    for key, (motion, shape_m) in motions.items():
         od = scene_dict.get(key)
         if motion.is_static or not isinstance(od, dict) or od.get("type") not in MESH_TYPES:
             continue
         if "emitter" in od:
             raise ValueError(f"object '{key}' is a moving mesh that emits light: the frozen launch cannot move it")
-        mesh = dict(od)
-        to_world = mesh.pop("to_world")
-        scene_dict[f"{key}__group"] = {"type": "shapegroup", f"{key}__mesh": mesh}
-        scene_dict[key] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"{key}__group"},
-                           "to_world": to_world}
-        done.append(key)
+        group = _free_key(scene_dict, f"{key}__group")
+        scene_dict[group] = {"type": "shapegroup", _free_key(scene_dict, f"{key}__mesh"): dict(od)}
+        scene_dict[key] = {"type": "instance", "shapegroup": {"type": "ref", "id": group},
+                           "to_world": mi.ScalarTransform4f()}
+        done[key] = np.linalg.inv(motion.matrix(0.0) @ shape_m)
     return done
 
 

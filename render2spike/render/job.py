@@ -59,6 +59,7 @@ from sensor.frames import MANIFEST_NAME, manifest_record, read_frame
 from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
+from . import frozen as _frozen
 from .frozen import DEFAULT_LAUNCH, check_launch, resolve_launch
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
 from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
@@ -304,6 +305,11 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             if old_launch != launch and asked != "auto":  # (auto would have taken the folder's launch)
                 hint += (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
                          f"pass --launch {old_launch} to resume it.")
+            old_est = (manifest or {}).get("launch_estimator", 1)
+            if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION:
+                hint += (f" Its frames were made by an earlier version of the frozen launch (estimator {old_est}, "
+                         f"now {_frozen.ESTIMATOR_VERSION}), which is not resumed; if nothing else changed, --overwrite "
+                         "renders them again.")
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
                              f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out."
                              + hint, path=out)
@@ -477,6 +483,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                 "profile": {"name": prof.name, "spec": scene.camera["profile"], "height": prof.height, "width": prof.width},
                 "variant": variant,
                 "launch": launch,
+                **({"launch_estimator": _frozen.ESTIMATOR_VERSION} if launch == "frozen" else {}),
                 "spp": spp,
                 "noise_budget": budget,
                 "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,

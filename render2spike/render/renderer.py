@@ -27,7 +27,8 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, SENSOR_KEY, build_dict, to_transform
-from .frozen import DEFAULT_LAUNCH, MAX_SAMPLES_PER_LAUNCH, check_launch, instance_moving_meshes, resolve_launch
+from .frozen import (DEFAULT_LAUNCH, MAX_SAMPLES_PER_LAUNCH, check_launch, frozen_obstacle, instance_moving_meshes,
+                     resolve_launch)
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
                          warn_if_reference_shadowed)
 from .scene import Scene, spectrum_curve
@@ -94,12 +95,14 @@ class SceneRenderer:
         self.launch_kind = launch = resolve_launch(launch, self.variant, scene)
         t0 = time.perf_counter()
         d, self.motions = build_dict(mi, scene)
+        instanced = {}  # {key: (M(0) S)^-1} of the meshes the frozen launch moves as instances
         cam_dict = d[SENSOR_KEY]
         if launch == "frozen":  # the camera keeps its pose and sampler; its film is never rendered (frozen.py)
-            try:
-                instance_moving_meshes(d, self.motions)
-            except ValueError as exc:
-                raise InputError(f"{exc}; render it with --launch film", path=scene.path, field="--launch") from exc
+            why = frozen_obstacle(scene)
+            if why:
+                raise InputError(f"{why}: render it with --launch film (--launch auto chooses it for this scene)",
+                                 path=scene.path, field="--launch")
+            instanced = instance_moving_meshes(mi, d, self.motions)
             _check_frozen_camera(cam_dict)
             film = cam_dict["film"]
             curves = {c: tuple(np.array([float(x) for x in film[c][k].split(",")]) for k in ("wavelengths", "values"))
@@ -135,7 +138,9 @@ class SceneRenderer:
             if motion.is_static:
                 continue
             pkey = f"{key}.to_world"
-            if pkey in self.params:
+            if key in instanced and pkey in self.params:  # to_world = relative_motion(t) (frozen.py)
+                self._moving[key] = ("instance", pkey, motion, shape_m, instanced[key])
+            elif pkey in self.params:
                 self._moving[key] = ("to_world", pkey, motion, shape_m, None)
             elif f"{key}.vertex_positions" in self.params:
                 vkey = f"{key}.vertex_positions"
@@ -186,7 +191,9 @@ class SceneRenderer:
             m = motion.matrix(t_s) @ shape_m
             if key == SENSOR_KEY:
                 self._cam_m = m
-            if kind == "to_world":
+            if kind == "instance":  # from the mesh's pose at t = 0 to the one at t_s (frozen.relative_motion)
+                self.params[pkey] = to_transform(mi, m @ local)
+            elif kind == "to_world":
                 self.params[pkey] = to_transform(mi, m)
             else:
                 v = (m @ np.c_[local, np.ones(len(local))].T).T[:, :3]
