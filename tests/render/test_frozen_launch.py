@@ -509,3 +509,23 @@ def test_the_replay_check_reports_equal_replays_and_catches_a_wrong_one(tmp_path
     _collect()
     assert mod.main(args + ["--out", str(tmp_path / "b")]) == 1
     assert "| 0 / 3 |" in (tmp_path / "b" / "frozen_replay.md").read_text()
+
+
+def test_instancing_keeps_an_object_whose_name_a_group_would_take():
+    # a scene may name an object KEY__group or KEY__mesh: the instancing takes other keys, drops nothing
+    from render2spike.render.backend import mitsuba
+    from render2spike.render.frozen import instance_moving_meshes
+
+    class Moving:
+        is_static = False
+
+        @staticmethod
+        def matrix(t_s):
+            return np.eye(4)
+    mi = mitsuba()
+    d = {"thing": {"type": "cube", "to_world": mi.ScalarTransform4f()},
+         "thing__group": {"type": "sphere"}, "thing__mesh": {"type": "sphere"}}
+    done = instance_moving_meshes(mi, d, {"thing": (Moving, np.eye(4))})
+    assert list(done) == ["thing"] and d["thing__group"] == {"type": "sphere"} and d["thing__mesh"] == {"type": "sphere"}
+    assert d["thing"]["type"] == "instance" and d["thing"]["shapegroup"]["id"] == "thing__group_2"
+    assert list(d["thing__group_2"]) == ["type", "thing__mesh_2"] and d["thing__group_2"]["thing__mesh_2"]["type"] == "cube"
