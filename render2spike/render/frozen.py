@@ -73,9 +73,11 @@ LAUNCHES = ("auto", "film", "frozen")
 DEFAULT_LAUNCH = "auto"
 #: the frozen launch's estimator, in the frames' scene hash: a change to how it samples or sums (grid, table,
 #: order of the sampler's dimensions, how a sample count is split into launches) must bump it, so that no
-#: folder mixes frames of two estimators. 2: launches of more than :data:`MAX_SAMPLES_PER_LAUNCH` samples are
-#: split (1 took any count below 2^32 in one launch)
-ESTIMATOR_VERSION = 2
+#: folder mixes frames of two estimators. 1: the first (commit 1d40865); 2: launches of more than
+#: :data:`MAX_SAMPLES_PER_LAUNCH` samples split, moving meshes as instances of the unposed mesh (6587769);
+#: 3: those instances start from the mesh's t = 0 pose (its smooth normals as in the film launch). The
+#: manifest records it as ``launch_estimator`` from 3 on
+ESTIMATOR_VERSION = 3
 #: the most samples one frozen launch takes (2^26: 512 MiB of held channel values, 8 bytes a sample); a frame
 #: that needs more is taken in several launches of at most this many, each with its own seed
 #: (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`). A constant, not the machine's memory:
@@ -102,9 +104,9 @@ def resolve_launch(launch: str, variant: str, scene=None) -> str:
     name."""
     if check_launch(launch) != "auto":
         return launch
-    if scene is not None and frozen_obstacle(scene):
+    if not str(variant).startswith(("llvm_", "cuda_")):
         return "film"
-    return "frozen" if str(variant).startswith(("llvm_", "cuda_")) else "film"
+    return "film" if scene is not None and frozen_obstacle(scene) else "frozen"
 
 
 #: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
@@ -113,9 +115,10 @@ def resolve_launch(launch: str, variant: str, scene=None) -> str:
 #: or more of the frames of ``translating_object``, unless Dr.Jit happened to record again). The frozen launch
 #: moves a moving mesh as an instance of a shape group instead (:func:`instance_moving_meshes`)
 MESH_TYPES = ("cube", "ply", "obj", "serialized")
-#: frame times per camera-second (64 to 8193 in all) at which :func:`frozen_obstacle` checks that a moving
-#: mesh's motion relative to its t = 0 pose is rigid
-RIGID_CHECKS_PER_S = 1000
+#: evenly spread frame times over the clip at which :func:`frozen_obstacle` checks that a moving mesh's motion
+#: relative to its t = 0 pose is rigid, besides every keyframe time and the midpoints between keyframes (where
+#: a scale that differs between keyframes shows); parametric motions (rotate, translate) are rigid
+RIGID_CHECK_TIMES = 65
 
 
 def relative_motion(motion, shape_m: np.ndarray, t_s: float) -> np.ndarray:
@@ -136,12 +139,12 @@ def frozen_obstacle(scene) -> str | None:
 
     The frozen launch moves a mesh as an instance of its t = 0 pose (:func:`instance_moving_meshes`), so
     it cannot move a mesh that emits light (Mitsuba cannot instance an emitter) nor one whose motion
-    changes its shape (a scale that changes over time, checked at :data:`RIGID_CHECKS_PER_S` times per
-    camera-second): an instance's transform would carry the t = 0 shading normals along, where the film
-    launch recomputes them from the deformed vertices."""
+    changes its shape (a scale that changes over time; checked at every keyframe time, the midpoints
+    between keyframes and :data:`RIGID_CHECK_TIMES` times over the clip): an instance's transform would
+    carry the t = 0 shading normals along, where the film launch recomputes them from the deformed
+    vertices."""
     from .builder import object_motion, shape_matrix
-    n = min(8193, max(64, int(np.ceil(float(scene.duration_s) * RIGID_CHECKS_PER_S)) + 1))
-    times = np.linspace(0.0, float(scene.duration_s), n)
+    even = np.linspace(0.0, float(scene.duration_s), RIGID_CHECK_TIMES)
     for i, obj in enumerate(scene.data["objects"]):
         if obj["shape"] not in ("cube", "mesh"):
             continue
@@ -153,6 +156,8 @@ def frozen_obstacle(scene) -> str | None:
             return (f"{where} is a moving mesh that emits light, which the frozen launch cannot move (it moves "
                     "meshes as instances; Mitsuba cannot instance an emitter)")
         sm = shape_matrix(obj)
+        keys = sorted(float(k["time_s"]) for k in (obj.get("motion") or {}).get("keyframes", []))
+        times = np.concatenate([even, keys, 0.5 * (np.array(keys[:-1]) + np.array(keys[1:]))]) if keys else even
         bad = [t for t in times if not _is_rigid(relative_motion(motion, sm, t))]
         if bad:
             return (f"{where} is a moving mesh whose motion changes its shape (e.g. at t = {bad[0]:.6g} s: a "

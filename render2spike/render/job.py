@@ -240,7 +240,9 @@ def launch_taken(scene: Scene, variant: str, launch: str, old_hash: str | None =
     from .frozen import resolve_launch
     taken = resolve_launch(launch, variant, scene)
     h = scene.content_hash(settings_of(scene, variant, taken))
-    if launch == "auto" and old_hash and old_hash != h and old_launch in ("film", "frozen") and old_launch != taken:
+    from .frozen import frozen_obstacle
+    if (launch == "auto" and old_hash and old_hash != h and old_launch in ("film", "frozen") and old_launch != taken
+            and not (old_launch == "frozen" and frozen_obstacle(scene))):  # (never a launch the scene cannot take)
         h_old = scene.content_hash(settings_of(scene, variant, old_launch))
         if h_old == old_hash:
             return old_launch, h_old
@@ -305,10 +307,11 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             if old_launch != launch and asked != "auto":  # (auto would have taken the folder's launch)
                 hint += (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
                          f"pass --launch {old_launch} to resume it.")
-            old_est = (manifest or {}).get("launch_estimator", 1)
+            old_est = (manifest or {}).get("launch_estimator")
             if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION:
-                hint += (f" Its frames were made by an earlier version of the frozen launch (estimator {old_est}, "
-                         f"now {_frozen.ESTIMATOR_VERSION}), which is not resumed; if nothing else changed, --overwrite "
+                was = f"estimator {old_est}" if old_est is not None else "an estimator before 3, unrecorded"
+                hint += (f" If nothing else changed, its frames were made by an earlier version of the frozen "
+                         f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
                          "renders them again.")
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
                              f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out."

@@ -237,6 +237,22 @@ def test_a_mesh_whose_motion_changes_its_shape_keeps_the_film_launch(write_scene
                                                                             "normal": [0, 0, 1]}}))
     assert "changes its shape" in frozen_obstacle(sc)
     assert resolve_launch("auto", "llvm_ad_spectral", sc) == "film"
+    # a blip of scale between two keyframes 10 us apart, shorter than the even check spacing: found at a keyframe
+    blip = {**MOVING[1], "motion": {"keyframes": [{"time_s": 0.00401, "scale": [1.0, 1.0, 1.0]},
+                                                  {"time_s": 0.00402, "scale": [3.0, 1.0, 1.0]},
+                                                  {"time_s": 0.00403, "scale": [1.0, 1.0, 1.0]}]}}
+    sc = load_scene(write_scene({"objects": [MOVING[0], blip], "reference": {"point": [0, 0, 0.05],
+                                                                            "normal": [0, 0, 1]}}))
+    assert "changes its shape" in frozen_obstacle(sc)
+    # rigid keyframed motion with a constant non-uniform (even negative) scale is no obstacle
+    turn = {**MOVING[1], "scale": [-1.5, 0.7, 1.0],
+            "motion": {"interpolation": "spline", "keyframes": [
+                {"time_s": 0.0, "position": [0, 0, 0], "rotation_deg": [0, 0, 0]},
+                {"time_s": 0.005, "position": [0.01, 0, 0], "rotation_deg": [0, 40, 10]},
+                {"time_s": 0.01, "position": [0.02, 0.01, 0], "rotation_deg": [10, 80, 0]}]}}
+    sc = load_scene(write_scene({"objects": [MOVING[0], turn], "reference": {"point": [0, 0, 0.05],
+                                                                            "normal": [0, 0, 1]}}))
+    assert frozen_obstacle(sc) is None
 
 
 def test_a_moving_mesh_that_emits_light_keeps_the_film_launch(write_scene):
@@ -249,6 +265,11 @@ def test_a_moving_mesh_that_emits_light_keeps_the_film_launch(write_scene):
                                                                             "normal": [0, 0, 1]}}))
     assert "emits light" in frozen_obstacle(sc)
     assert resolve_launch("auto", "llvm_ad_spectral", sc) == "film"
+    # nor does auto keep the frozen launch of a folder for it (one made by an older version that allowed it)
+    from render2spike.render.job import launch_taken, settings_of
+    old = sc.content_hash(settings_of(sc, "llvm_ad_spectral", "frozen"))
+    assert launch_taken(sc, "llvm_ad_spectral", "auto", old, "frozen") == (
+        "film", sc.content_hash(settings_of(sc, "llvm_ad_spectral", "film")))
     with pytest.raises(InputError, match="--launch film"):
         SceneRenderer(sc, launch="frozen")
     still = {**glow}
