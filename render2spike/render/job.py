@@ -60,7 +60,7 @@ from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
 from . import frozen as _frozen
-from .frozen import DEFAULT_LAUNCH, check_launch, resolve_launch
+from .frozen import DEFAULT_LAUNCH, check_launch, frozen_obstacle, resolve_launch
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
 from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
 from .scene import Scene
@@ -235,12 +235,11 @@ def launch_taken(scene: Scene, variant: str, launch: str, old_hash: str | None =
     ``film`` and ``frozen`` are taken as named; ``auto`` as :func:`.frozen.resolve_launch` says, except
     that a folder already holding frames (its ``old_hash``, rendered with ``old_launch``) that differ
     from this run's by the launch alone keeps its launch: a folder rendered before ``auto`` was the
-    default, or with the other launch, is resumed, not refused.
+    default, or with the other launch, is resumed, not refused (but never with the frozen launch for a
+    scene it cannot render, :func:`.frozen.frozen_obstacle`).
     """
-    from .frozen import resolve_launch
     taken = resolve_launch(launch, variant, scene)
     h = scene.content_hash(settings_of(scene, variant, taken))
-    from .frozen import frozen_obstacle
     if (launch == "auto" and old_hash and old_hash != h and old_launch in ("film", "frozen") and old_launch != taken
             and not (old_launch == "frozen" and frozen_obstacle(scene))):  # (never a launch the scene cannot take)
         h_old = scene.content_hash(settings_of(scene, variant, old_launch))

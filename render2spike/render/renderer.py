@@ -82,7 +82,9 @@ class SceneRenderer:
         into Mitsuba's spectral film; ``frozen`` records the launch once with ``drjit.freeze`` and
         replays it (:mod:`.frozen`): the same channels in the same units, another Monte Carlo
         estimate, without the per-launch tracing on the host; ``auto`` (the default) is ``frozen`` on
-        an LLVM or CUDA variant and ``film`` on a scalar one (:func:`.frozen.resolve_launch`).
+        an LLVM or CUDA variant and ``film`` on a scalar one, or for a scene the frozen launch cannot
+        render (a moving mesh that emits light or changes shape: :func:`.frozen.frozen_obstacle`;
+        :func:`.frozen.resolve_launch`).
         :attr:`launch_kind` is the launch taken.
     """
 
