@@ -8,11 +8,11 @@
 #      measured earlier (--cpu-ref).
 #   4. the README's main job (render2spike run scenes/rotating_disk.yaml) on the variant chosen automatically;
 #   5. with FROZEN_T=seconds (0 or unset: skipped), benchmarks/render_frozen.py, the film launch against the
-#      frozen launch (render2spike/render/frozen.py, not yet run on a GPU) on the auto-selected variant, at
+#      frozen launch (render2spike/render/frozen.py, the default launch) on the auto-selected variant, at
 #      three points, or those FROZEN_ARGS gives (its tests run in step 2, as part of tests/render).
 # REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
-# the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: film only,
-# the default launch).
+# the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: auto
+# only, the README's command as it stands; its log is demo.txt, another launch's demo_LAUNCH.txt).
 # Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
 #        [DEMO_LAUNCHES="film frozen"] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
@@ -65,10 +65,10 @@ stamp "benchmark exit $rc"
 
 [ "$DEMO_T" -gt 0 ] && {
 TIMEFORMAT='wall %R s, user %U s, sys %S s'
-for launch in ${DEMO_LAUNCHES:-film}; do
+for launch in ${DEMO_LAUNCHES:-auto}; do
 stamp "main job (README's command) on the auto-selected variant, --launch $launch (timeout ${DEMO_T} s)"
 demo=$(mktemp -d)/demo  # a fresh folder: a rerun must not resume a finished job
-log="$OUT/demo.txt"; [ "$launch" = film ] || log="$OUT/demo_$launch.txt"
+log="$OUT/demo.txt"; [ "$launch" = auto ] || log="$OUT/demo_$launch.txt"
 { time timeout "$DEMO_T" python3 -m render2spike run scenes/rotating_disk.yaml --out "$demo" --launch "$launch"
   echo "exit $?"; cat "$demo/summary.md"; } > "$log" 2>&1
 grep -qx "exit 0" "$log" || fail=1

@@ -18,8 +18,9 @@ The whole pipeline in one command:
 With --dat the spikes are also written as OUT/spikes.dat (SpikeCV layout).
 The sensor profile comes from the scene (camera.profile) unless --profile is given.
 --seed seeds the spike simulation (default 0), --render-seed the render; the same
-scene, options and seeds give the same frames (to float round-off: at high spp a
-pixel may differ in its last bits run to run, rarely on the CPU, often on a GPU) and, from the
+scene, options and seeds give the same frames (bit for bit with the default frozen
+launch; with --launch film to float round-off: at high spp a pixel may differ in its
+last bits run to run, rarely on the CPU, often on a GPU) and, from the
 same frames, bitwise-identical spikes, also after a resumed render. Rerunning into OUT resumes the render and rewrites the rest;
 an OUT made with another scene, model, seed or profile is refused unless --overwrite.
 SCENE is a YAML file or a bundled scene name (rotating_disk, translating_object,
