@@ -64,6 +64,19 @@ def object_motion(obj: dict, where: str) -> Motion:
     return Motion.from_spec(base, obj.get("motion"), where=where)
 
 
+def moving_meshes(scene: Scene) -> list[tuple[int, dict, Motion]]:
+    """``(index, object, motion)`` of every object of ``scene`` that Mitsuba loads as a triangle mesh (a ``cube``
+    or a ``mesh`` file) and that moves: the objects the film launch moves by rewriting their vertices and the
+    frozen launch as instances."""
+    out = []
+    for i, obj in enumerate(scene.data["objects"]):
+        if obj["shape"] in ("cube", "mesh"):
+            motion = object_motion(obj, f"objects.{i}.")
+            if not motion.is_static:
+                out.append((i, obj, motion))
+    return out
+
+
 def camera_motion(cam: dict) -> Motion:
     base = Pose.from_spec(cam, where="camera.")
     return Motion.from_spec(base, cam.get("motion"), where="camera.")

@@ -60,6 +60,7 @@ from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
 from . import frozen as _frozen
+from .builder import moving_meshes
 from .frozen import DEFAULT_LAUNCH, check_launch, frozen_obstacle, resolve_launch
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
 from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
@@ -215,7 +216,10 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     # spp than procedure 2 did, so a folder of the older budget is not taken for this one's output
     # launch (frozen.LAUNCHES): the frozen launch makes other Monte Carlo estimates than the film's, so its
     # frames get their own hash, with its estimator's version; the film launch adds nothing (the hashes of
-    # folders made before it stay valid)
+    # folders made before it stay valid) except for a scene with a moving mesh: since 2026-11-26 its vertex
+    # rewrites carry the mesh's normals (renderer.carried_normals) where Mitsuba had recomputed them, which
+    # changes such frames (inside-out negative scales, lost authored normals), so folders of the older frames
+    # are not resumed ("mesh_normals", also in the render state and manifest: FILM_MESH_NORMALS)
     from .frozen import ESTIMATOR_VERSION, check_launch
     if check_launch(launch) == "auto":
         raise ValueError("settings_of takes the launch a render takes (frozen.resolve_launch), not 'auto'")
@@ -225,7 +229,20 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     if launch != "film":
         out["launch"] = launch
         out["launch_estimator"] = ESTIMATOR_VERSION
+    elif moving_meshes(scene):
+        out["mesh_normals"] = FILM_MESH_NORMALS
     return out
+
+
+#: how the film launch moves a mesh's normals with its vertex rewrites (:func:`settings_of`): ``carried`` by the
+#: inverse transpose of the pose (:func:`.renderer.carried_normals`); before 2026-11-26 (unrecorded) Mitsuba
+#: recomputed them from the triangles
+FILM_MESH_NORMALS = "carried"
+
+
+def _film_mesh_normals(scene: Scene, launch: str) -> dict:
+    """``{"mesh_normals": ...}`` for the render state and manifest of a film-launch render that moves a mesh."""
+    return {"mesh_normals": FILM_MESH_NORMALS} if launch == "film" and moving_meshes(scene) else {}
 
 
 def launch_taken(scene: Scene, variant: str, launch: str, old_hash: str | None = None,
@@ -312,6 +329,12 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                 hint += (f" If nothing else changed, its frames were made by an earlier version of the frozen "
                          f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
                          "renders them again.")
+            old_normals = (manifest or {}).get("mesh_normals", (state or {}).get("mesh_normals"))
+            if old_launch == "film" and moving_meshes(scene) and old_normals != FILM_MESH_NORMALS:
+                hint += (" If nothing else changed, its frames were made before the film launch carried its moving "
+                         "meshes' normals along (2026-11-26; Mitsuba had recomputed them, which turned a mesh with "
+                         "a negative scale inside out and lost a mesh file's own normals), which are not resumed: "
+                         "--overwrite renders them again.")
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
                              f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out."
                              + hint, path=out)
@@ -334,7 +357,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         state = None
     if state is None:
         state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "variant": variant,
-                 "launch": launch, "frames": {}, "complete": False}
+                 "launch": launch, **_film_mesh_normals(scene, launch), "frames": {}, "complete": False}
     # keep only frames whose files exist
     state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
     n_resumed = len(state["frames"])
@@ -486,6 +509,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                 "variant": variant,
                 "launch": launch,
                 **({"launch_estimator": _frozen.ESTIMATOR_VERSION} if launch == "frozen" else {}),
+                **_film_mesh_normals(scene, launch),
                 "spp": spp,
                 "noise_budget": budget,
                 "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,

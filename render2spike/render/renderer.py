@@ -4,8 +4,9 @@
 object stays a separate, movable shape), measures the light level once, and
 for each time ``t_s``:
 
-1. sets every moving object's ``to_world`` (or, for meshes, its vertex
-   positions) and the camera's ``to_world`` from :mod:`.motion`;
+1. sets every moving object's ``to_world`` (for meshes in the film launch, their vertex
+   positions and normals; in the frozen launch, their instance's transform) and the
+   camera's ``to_world`` from :mod:`.motion`;
 2. renders the two-channel spectral film with exactly the asked samples per
    pixel (seeds derived from the base seed and the frame time), in one launch
    when the sampler takes that count exactly; optionally a second, independent
@@ -57,6 +58,64 @@ def _check_frozen_motion(moving: dict) -> None:
     if vertex_moved:
         raise RuntimeError(f"the frozen launch cannot move {vertex_moved} by their vertices: make them instances "
                            "(frozen.instance_moving_meshes, frozen.MESH_TYPES), or use --launch film")
+
+
+def carried_normals(m: np.ndarray, n_local: np.ndarray) -> np.ndarray:
+    """Unit normals, float32 (N, 3), of a mesh posed by the 4 x 4 transform ``m`` (metres), from its normals
+    ``n_local`` (N, 3) in the mesh's own frame: by the inverse transpose of ``m``'s linear part ``A``, as Mitsuba
+    carries a mesh's normals through its ``to_world`` at load and an instance's through its transform.
+
+    Computed as ``sign(det A) cof(A) n`` (``A^-T = cof(A) / det A``), so that a pose of zero scale along an axis
+    (a keyframed scale passing through 0) gives finite normals; a normal that such a pose maps to zero keeps
+    its own direction."""
+    a = np.asarray(m, np.float64)[:3, :3]
+    cof = np.stack([np.cross(a[:, 1], a[:, 2]), np.cross(a[:, 2], a[:, 0]), np.cross(a[:, 0], a[:, 1])], axis=1)
+    det = float(np.linalg.det(a))
+    n = (n_local @ cof.T) * (-1.0 if det < 0 else 1.0)  # rows: (cof n^T)^T
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    lost = norm[:, 0] == 0.0
+    n[lost], norm[lost] = n_local[lost], np.linalg.norm(n_local[lost], axis=1, keepdims=True)
+    return (n / np.maximum(norm, 1e-300)).astype(np.float32)
+
+
+def _buffer_like(params, key: str, values: np.ndarray):
+    """``values`` as a flat float32 buffer of the type Mitsuba holds ``params[key]`` in (``mi.Float`` on the JIT
+    variants, ``drjit.scalar.ArrayXf`` on the scalar ones, where ``mi.Float`` is a Python float)."""
+    return type(params[key])(np.ascontiguousarray(values, dtype=np.float32).ravel())
+
+
+def _mesh_local_frame(params, key: str, m0: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(vertices, normals) of the loaded mesh ``key`` in its own frame, undone from ``m0``, its 4 x 4 pose at
+    t = 0 (motion times shape matrix), with which the builder placed it. ``normals`` is None unless the
+    mesh's loaded vertex normals are not Mitsuba's recomputation from its triangles.
+
+    Why. The film launch moves a mesh by rewriting its vertices, and Mitsuba then recomputes its vertex normals
+    from the triangles unless they are set too. For most meshes that is what Mitsuba made at load (a mesh file
+    without normals; a ``cube`` of positive scale), and a recomputation at each pose is what the same mesh
+    standing in that pose would get. But where the loaded normals are not a recomputation (normals authored in a
+    mesh file; any mesh with authored normals, the ``cube`` included, under a negative scale, where the load
+    carries them by the inverse transpose and they point out while the mirrored triangles' winding points in),
+    a recomputation turned the mesh inside out or discarded its normals. Those normals are returned in the
+    mesh's frame and the renderer sets them at each pose with :func:`carried_normals`, as the load does: either
+    way the moving mesh renders as it would standing still in its pose. Found by setting the positions back
+    once and reading Mitsuba's recomputation (the mesh is left as it was loaded)."""
+    pkey, nkey = f"{key}.vertex_positions", f"{key}.vertex_normals"
+    v32 = np.array(params[pkey], dtype=np.float32)
+    v = v32.astype(np.float64).reshape(-1, 3)
+    local = (np.linalg.inv(m0) @ np.c_[v, np.ones(len(v))].T).T[:, :3]
+    n32 = np.array(params[nkey], dtype=np.float32) if nkey in params else np.zeros(0, np.float32)
+    if n32.size != v32.size or n32.size == 0:  # no vertex normals: flat-shaded from its faces at any pose
+        return local, None
+    params[pkey] = _buffer_like(params, pkey, v32)
+    params.set_dirty(pkey)  # (setting equal values is a no-op on the scalar variants)
+    params.update()
+    recomputed = np.array(params[nkey], dtype=np.float32)
+    if np.allclose(recomputed, n32, rtol=0.0, atol=1e-5):
+        return local, None
+    params[nkey] = _buffer_like(params, nkey, n32)  # as loaded again (the positions are)
+    params.set_dirty(nkey)
+    params.update()
+    return local, n32.astype(np.float64).reshape(-1, 3) @ m0[:3, :3]  # (A0^T n^T)^T: undoes the load's A0^-T
 
 
 def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
@@ -145,12 +204,8 @@ class SceneRenderer:
             elif pkey in self.params:
                 self._moving[key] = ("to_world", pkey, motion, shape_m, None)
             elif f"{key}.vertex_positions" in self.params:
-                vkey = f"{key}.vertex_positions"
-                v = np.array(self.params[vkey], dtype=np.float64).reshape(-1, 3)
-                # vertices were placed with the t = 0 transform; keep the local ones
-                m0 = motion.matrix(0.0) @ shape_m
-                local = (np.linalg.inv(m0) @ np.c_[v, np.ones(len(v))].T).T[:, :3]
-                self._moving[key] = ("vertices", vkey, motion, shape_m, local)
+                self._moving[key] = ("vertices", f"{key}.vertex_positions", motion, shape_m,
+                                     _mesh_local_frame(self.params, key, motion.matrix(0.0) @ shape_m))
             else:
                 raise InputError(f"object '{key}' cannot be moved: Mitsuba exposes neither to_world nor "
                                  "vertex_positions for it", path=scene.path, field=f"objects.{key}.motion")
@@ -197,9 +252,13 @@ class SceneRenderer:
                 self.params[pkey] = to_transform(mi, m @ local)
             elif kind == "to_world":
                 self.params[pkey] = to_transform(mi, m)
-            else:
-                v = (m @ np.c_[local, np.ones(len(local))].T).T[:, :3]
-                self.params[pkey] = mi.Float(v.astype(np.float32).ravel())
+            else:  # the film launch's vertex rewrite; authored normals carried along (_mesh_local_frame)
+                v_local, n_local = local
+                v = (m @ np.c_[v_local, np.ones(len(v_local))].T).T[:, :3]
+                self.params[pkey] = _buffer_like(self.params, pkey, v)
+                if n_local is not None:
+                    nkey = f"{key}.vertex_normals"
+                    self.params[nkey] = _buffer_like(self.params, nkey, carried_normals(m, n_local))
         self.params.update()
         self._t_set = t_s
 

@@ -44,3 +44,35 @@ def have_mitsuba():
 
 
 needs_mitsuba = pytest.mark.skipif(not have_mitsuba(), reason="Mitsuba 3 not installed")
+
+
+def film_and_frozen_frames(scene, key, times=(0.0, 0.006), spp=64):
+    """Frames of ``scene`` at ``times`` from the film launch (seed 1) and then the frozen launch (seed 2, the
+    film's light-level measurement), each with its per-pixel variance estimate; checks that the frozen launch
+    moves object ``key`` as an instance. The film renderer is let go of (and collected) before the frozen one
+    records: a live film scene breaks ``drjit.freeze`` (test_frozen_launch)."""
+    import gc
+
+    from render2spike.render.renderer import SceneRenderer
+    film = SceneRenderer(scene, launch="film")
+    cal = film.calibration
+    fa = [film.render_frame(t, 1, spp, variance=True) for t in times]
+    del film
+    gc.collect()
+    r = SceneRenderer(scene, launch="frozen", calibration=cal)
+    assert r._moving[key][0] == "instance"
+    return fa, [r.render_frame(t, 2, spp, variance=True) for t in times]
+
+
+def assert_image_means_agree(fa, fb, z_max=4.5):
+    """Pairs of frames (same times, independent seeds) whose image means of ``phi`` agree.
+
+    z: a difference of two image means, in units of its standard deviation estimated from one per-pixel
+    variance estimate per pixel of each frame (over the whole image: near normal); |z| > 4.5 has probability
+    7e-6 if they agree."""
+    import numpy as np
+    for a, b in zip(fa, fb):
+        n = a["phi"].size
+        sd = np.sqrt((a["phi_var"].sum() + b["phi_var"].sum()) / n ** 2)
+        z = (a["phi"].mean() - b["phi"].mean()) / sd
+        assert abs(z) < z_max, (a["time_s"], z)
