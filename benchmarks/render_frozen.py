@@ -99,11 +99,39 @@ def pipeline_child(scene: str, size: str, spp: int, launch: str, frames: int) ->
     with tempfile.TemporaryDirectory(dir=HERE / ".scratch" if (HERE / ".scratch").is_dir() else None) as d:
         res = render_scene(sc, Path(d) / "f", progress=False, log=lambda *a: None, launch=launch)
         t_end = time.perf_counter()
+        probe = file_create_probe(Path(d) / "f")
     hist = dr.kernel_history()
     compile_s = sum(float(h.get("backend_time", 0.0)) for h in hist
                     if h.get("type") == dr.KernelType.JIT and not h.get("cache_hit")) / 1e3
     return {"scene": scene, "size": size, "spp": spp, "launch": launch, "frames": res.n_frames,
-            "median_ms": 1e3 * (t_end - st["t_first"] - compile_s) / res.n_frames, "compile_s": compile_s}
+            "median_ms": 1e3 * (t_end - st["t_first"] - compile_s) / res.n_frames, "compile_s": compile_s,
+            "file_create": probe}
+
+
+def file_create_probe(folder: Path, n: int = 200) -> dict:
+    """What making one file costs in ``folder`` now: ``n`` small files each created under a temp name
+    (``O_CREAT | O_EXCL``), written (7 kB, a 32 x 48 frame's size) and renamed, as ``sensor.fileio.
+    write_bytes_atomic`` writes a frame; then removed. -> ``{"wall_ms", "sys_ms"}`` per file (the system CPU
+    time of this process: the kernel's part, which a frame's writer thread takes from the render's threads).
+
+    Why: on the 2-CPU development VM (ext4 without a journal), ``perf`` put ~70 % of a file creation's time in
+    the inode allocator's scan for recently deleted inodes (``recently_deleted``, ``find_inode_bit``): 0.4-0.75
+    ms of kernel CPU per new file on 2026-11-26, where other file systems take ~0.03 ms. So the render job's
+    overhead per frame is reported beside it."""
+    import resource
+    data = b"\0" * 7000
+    names = [(str(folder / f".probe-{os.getpid()}-{i}.part"), str(folder / f".probe-{os.getpid()}-{i}.exr"))
+             for i in range(n)]
+    r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    for tmp, final in names:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        os.write(fd, data)
+        os.close(fd)
+        os.replace(tmp, final)
+    t1, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
+    for _, final in names:
+        os.unlink(final)
+    return {"wall_ms": 1e3 * (t1 - t0) / n, "sys_ms": 1e3 * (r1.ru_stime - r0.ru_stime) / n}
 
 
 def _run_child(args: list[str]) -> dict:
@@ -158,9 +186,12 @@ def report(res: dict) -> str:
     if any(p.get("pipeline_film") for p in res["points"]):
         L += ["", "The render job per frame (`render_scene`, fixed spp, adaptive off: frame writes, journal and "
               "verification launches in; kernel compilation out), against the film launch's bare frame above "
-              "(the goal's bare `mi.render`) and against each launch's own bare frame:", "",
+              "(the goal's bare `mi.render`) and against each launch's own bare frame; last, what creating one "
+              "file (a frame's size, under a temp name, then renamed) cost in the frozen job's folder right after "
+              "it (`file_create_probe`), in wall ms and the kernel's CPU ms: the job makes one file per frame:", "",
               "| scene | size | spp | job ms, film | job ms, frozen | frozen job / bare film launch | "
-              "film job / its launch | frozen job / its launch |", "|---|---|---|---|---|---|---|---|"]
+              "film job / its launch | frozen job / its launch | frozen job - its launch, ms | "
+              "a file's creation, ms (sys CPU) |", "|---|---|---|---|---|---|---|---|---|---|"]
         for p in res["points"]:
             if not p.get("pipeline_film"):
                 continue
@@ -172,7 +203,9 @@ def report(res: dict) -> str:
                 return ", ".join(f"{x:.2f}" for x in xs)
             L.append(f"| {p['scene']} | {p['film'][0]['height']} x {p['film'][0]['width']} | {p['spp']} | {fmt(jf)} | "
                      f"{fmt(jz)} | {fmt([a / b for a, b in zip(jz, f)])} | {fmt([a / b for a, b in zip(jf, f)])} | "
-                     f"{fmt([a / b for a, b in zip(jz, z)])} |")
+                     f"{fmt([a / b for a, b in zip(jz, z)])} | {fmt([a - b for a, b in zip(jz, z)])} | "
+                     + (", ".join(f"{r['file_create']['wall_ms']:.2f} ({r['file_create']['sys_ms']:.2f})"
+                                  if r.get("file_create") else "-" for r in p["pipeline_frozen"])) + " |")
     if res.get("jobs"):
         L += ["", "`render2spike render SCENE --launch ...` (whole command, fresh folder, bundled scene):", "",
               "| scene | launch | wall s | frames | spp | render/shot noise | load |", "|---|---|---|---|---|---|---|"]

@@ -77,6 +77,54 @@ def moving_meshes(scene: Scene) -> list[tuple[int, dict, Motion]]:
     return out
 
 
+def mesh_file_has_normals(path) -> bool:
+    """Whether Mitsuba loads vertex normals from the mesh file ``path`` (rather than computing them from its
+    triangles): a PLY whose ``vertex`` element has an ``nx`` property, or an OBJ with ``vn`` lines whose faces
+    use them (``f v//n`` or ``f v/t/n``). Reads the PLY's header only; an OBJ is scanned line by line.
+    Raises :class:`~sensor.errors.InputError` for a file it cannot read."""
+    from pathlib import Path
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            if path.suffix.lower() == ".ply":
+                head = b""
+                while b"end_header" not in head and len(head) < 1 << 20:
+                    chunk = fh.read(4096)
+                    if not chunk:
+                        break
+                    head += chunk
+                element = None
+                for line in head.split(b"end_header")[0].decode("latin-1").splitlines():
+                    tok = line.split()
+                    if tok[:1] == ["element"] and len(tok) > 1:
+                        element = tok[1]
+                    elif tok[:1] == ["property"] and element == "vertex" and tok[-1] == "nx":
+                        return True
+                return False
+            has_vn = uses_vn = False
+            for line in fh:
+                if line.startswith(b"vn "):
+                    has_vn = True
+                elif line.startswith(b"f ") and not uses_vn:
+                    corner = line.split()[1:2]
+                    uses_vn = bool(corner) and corner[0].count(b"/") == 2 and not corner[0].endswith(b"/")
+            return has_vn and uses_vn
+    except OSError as exc:
+        raise InputError(f"cannot read the mesh file ({exc})", path=path) from exc
+
+
+def carries_normals(scene: Scene, obj: dict) -> bool:
+    """Whether the film launch sets a moving mesh's vertex normals itself at each pose (by the inverse transpose
+    of the pose, as Mitsuba's load does: ``renderer.carried_normals``) instead of letting Mitsuba recompute
+    them from the moved triangles: for a ``cube`` (Mitsuba makes it with a normal per face) and for a mesh
+    file with its own normals (:func:`mesh_file_has_normals`). Either way a moving mesh renders as the same
+    mesh standing still in its pose: Mitsuba's load carries the normals it is given and computes the rest
+    from the posed triangles."""
+    if obj["shape"] == "cube":
+        return True
+    return obj["shape"] == "mesh" and mesh_file_has_normals(scene.file(obj["file"], "objects.file"))
+
+
 def camera_motion(cam: dict) -> Motion:
     base = Pose.from_spec(cam, where="camera.")
     return Motion.from_spec(base, cam.get("motion"), where="camera.")

@@ -141,9 +141,9 @@ def frozen_obstacle(scene) -> str | None:
     it cannot move a mesh that emits light (Mitsuba cannot instance an emitter) nor one whose motion
     changes its shape (a scale that changes over time; checked at every keyframe time, the midpoints
     between keyframes and :data:`RIGID_CHECK_TIMES` times over the clip): an instance's transform would
-    carry the t = 0 shading normals along, where the film launch lets Mitsuba recompute a mesh's own
-    (not authored) normals from the deformed vertices, as the mesh standing in that pose would get them
-    (``renderer._mesh_local_frame``)."""
+    carry the t = 0 shading normals along, where the film launch lets Mitsuba recompute the normals of a mesh
+    file without normals of its own from the deformed vertices, as the mesh standing in that pose would get
+    them (``builder.carries_normals``)."""
     from .builder import moving_meshes, shape_matrix
     even = np.linspace(0.0, float(scene.duration_s), RIGID_CHECK_TIMES)
     for i, obj, motion in moving_meshes(scene):

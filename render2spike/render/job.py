@@ -60,7 +60,7 @@ from sensor.lock import FolderLock, sweep_parts
 
 from . import backend
 from . import frozen as _frozen
-from .builder import moving_meshes
+from .builder import carries_normals, moving_meshes
 from .frozen import DEFAULT_LAUNCH, check_launch, frozen_obstacle, resolve_launch
 from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
 from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
@@ -216,10 +216,11 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     # spp than procedure 2 did, so a folder of the older budget is not taken for this one's output
     # launch (frozen.LAUNCHES): the frozen launch makes other Monte Carlo estimates than the film's, so its
     # frames get their own hash, with its estimator's version; the film launch adds nothing (the hashes of
-    # folders made before it stay valid) except for a scene with a moving mesh: since 2026-11-26 its vertex
-    # rewrites carry the mesh's normals (renderer.carried_normals) where Mitsuba had recomputed them, which
-    # changes such frames (inside-out negative scales, lost authored normals), so folders of the older frames
-    # are not resumed ("mesh_normals", also in the render state and manifest: FILM_MESH_NORMALS)
+    # folders made before it stay valid) except for a scene with a moving mesh given its own normals (a cube,
+    # a mesh file with normals: builder.carries_normals): since 2026-11-26 the film launch's vertex rewrites
+    # carry those normals (renderer.carried_normals) where Mitsuba had recomputed them, which changes such
+    # frames (inside-out negative scales, lost authored normals; round-off elsewhere), so folders of the older
+    # frames are not resumed ("mesh_normals"; every film-launch render state and manifest records it since)
     from .frozen import ESTIMATOR_VERSION, check_launch
     if check_launch(launch) == "auto":
         raise ValueError("settings_of takes the launch a render takes (frozen.resolve_launch), not 'auto'")
@@ -229,9 +230,13 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
     if launch != "film":
         out["launch"] = launch
         out["launch_estimator"] = ESTIMATOR_VERSION
-    elif moving_meshes(scene):
+    elif _carries_moving_normals(scene):
         out["mesh_normals"] = FILM_MESH_NORMALS
     return out
+
+
+def _carries_moving_normals(scene: Scene) -> bool:
+    return any(carries_normals(scene, obj) for _, obj, _ in moving_meshes(scene))
 
 
 #: how the film launch moves a mesh's normals with its vertex rewrites (:func:`settings_of`): ``carried`` by the
@@ -240,9 +245,10 @@ def settings_of(scene: Scene, variant: str, launch: str = "film") -> dict:
 FILM_MESH_NORMALS = "carried"
 
 
-def _film_mesh_normals(scene: Scene, launch: str) -> dict:
-    """``{"mesh_normals": ...}`` for the render state and manifest of a film-launch render that moves a mesh."""
-    return {"mesh_normals": FILM_MESH_NORMALS} if launch == "film" and moving_meshes(scene) else {}
+def _film_mesh_normals(launch: str) -> dict:
+    """``{"mesh_normals": ...}`` for the render state and manifest of a film-launch render (of any scene: a
+    refused folder without it was made before the change, see :func:`settings_of`)."""
+    return {"mesh_normals": FILM_MESH_NORMALS} if launch == "film" else {}
 
 
 def launch_taken(scene: Scene, variant: str, launch: str, old_hash: str | None = None,
@@ -320,7 +326,9 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
             if old_variant and backend.variant_family(old_variant) != backend.variant_family(variant):
                 hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
                         f"--variant {old_variant} to resume it.")
-            if old_launch != launch and asked != "auto":  # (auto would have taken the folder's launch)
+            if (old_launch != launch and asked != "auto"  # (auto would have taken the folder's launch)
+                    and old_launch in ("film", "frozen")  # (and only where that launch would resume it)
+                    and scene.content_hash(settings_of(scene, old_variant or variant, old_launch)) == old_hash):
                 hint += (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
                          f"pass --launch {old_launch} to resume it.")
             old_est = (manifest or {}).get("launch_estimator")
@@ -330,7 +338,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                          f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
                          "renders them again.")
             old_normals = (manifest or {}).get("mesh_normals", (state or {}).get("mesh_normals"))
-            if old_launch == "film" and moving_meshes(scene) and old_normals != FILM_MESH_NORMALS:
+            if old_launch == "film" and old_normals != FILM_MESH_NORMALS and _carries_moving_normals(scene):
                 hint += (" If nothing else changed, its frames were made before the film launch carried its moving "
                          "meshes' normals along (2026-11-26; Mitsuba had recomputed them, which turned a mesh with "
                          "a negative scale inside out and lost a mesh file's own normals), which are not resumed: "
@@ -357,7 +365,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         state = None
     if state is None:
         state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "variant": variant,
-                 "launch": launch, **_film_mesh_normals(scene, launch), "frames": {}, "complete": False}
+                 "launch": launch, **_film_mesh_normals(launch), "frames": {}, "complete": False}
     # keep only frames whose files exist
     state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
     n_resumed = len(state["frames"])
@@ -509,7 +517,7 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
                 "variant": variant,
                 "launch": launch,
                 **({"launch_estimator": _frozen.ESTIMATOR_VERSION} if launch == "frozen" else {}),
-                **_film_mesh_normals(scene, launch),
+                **_film_mesh_normals(launch),
                 "spp": spp,
                 "noise_budget": budget,
                 "render_noise_ratio": {"mean": float(np.nanmean(all_ratios)) if np.any(np.isfinite(all_ratios)) else None,

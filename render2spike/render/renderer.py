@@ -27,7 +27,7 @@ from sensor.errors import InputError
 from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
-from .builder import SAMPLER, SENSOR_KEY, build_dict, to_transform
+from .builder import SAMPLER, SENSOR_KEY, build_dict, carries_normals, moving_meshes, to_transform
 from .frozen import (DEFAULT_LAUNCH, MAX_SAMPLES_PER_LAUNCH, check_launch, frozen_obstacle, instance_moving_meshes,
                      resolve_launch)
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
@@ -67,7 +67,7 @@ def carried_normals(m: np.ndarray, n_local: np.ndarray) -> np.ndarray:
 
     Computed as ``sign(det A) cof(A) n`` (``A^-T = cof(A) / det A``), so that a pose of zero scale along an axis
     (a keyframed scale passing through 0) gives finite normals; a normal that such a pose maps to zero keeps
-    its own direction."""
+    its direction in the mesh's own frame (any unit vector would do: the mesh is flat there)."""
     a = np.asarray(m, np.float64)[:3, :3]
     cof = np.stack([np.cross(a[:, 1], a[:, 2]), np.cross(a[:, 2], a[:, 0]), np.cross(a[:, 0], a[:, 1])], axis=1)
     det = float(np.linalg.det(a))
@@ -84,38 +84,25 @@ def _buffer_like(params, key: str, values: np.ndarray):
     return type(params[key])(np.ascontiguousarray(values, dtype=np.float32).ravel())
 
 
-def _mesh_local_frame(params, key: str, m0: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+def _mesh_local_frame(params, key: str, m0: np.ndarray, carry: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """(vertices, normals) of the loaded mesh ``key`` in its own frame, undone from ``m0``, its 4 x 4 pose at
-    t = 0 (motion times shape matrix), with which the builder placed it. ``normals`` is None unless the
-    mesh's loaded vertex normals are not Mitsuba's recomputation from its triangles.
+    t = 0 (motion times shape matrix), with which the builder placed it. ``normals`` is None unless ``carry``
+    (:func:`.builder.carries_normals`) and the mesh has vertex normals.
 
     Why. The film launch moves a mesh by rewriting its vertices, and Mitsuba then recomputes its vertex normals
-    from the triangles unless they are set too. For most meshes that is what Mitsuba made at load (a mesh file
-    without normals; a ``cube`` of positive scale), and a recomputation at each pose is what the same mesh
-    standing in that pose would get. But where the loaded normals are not a recomputation (normals authored in a
-    mesh file; any mesh with authored normals, the ``cube`` included, under a negative scale, where the load
-    carries them by the inverse transpose and they point out while the mirrored triangles' winding points in),
-    a recomputation turned the mesh inside out or discarded its normals. Those normals are returned in the
-    mesh's frame and the renderer sets them at each pose with :func:`carried_normals`, as the load does: either
-    way the moving mesh renders as it would standing still in its pose. Found by setting the positions back
-    once and reading Mitsuba's recomputation (the mesh is left as it was loaded)."""
-    pkey, nkey = f"{key}.vertex_positions", f"{key}.vertex_normals"
-    v32 = np.array(params[pkey], dtype=np.float32)
-    v = v32.astype(np.float64).reshape(-1, 3)
+    from the triangles unless they are set too. For a mesh file without normals that is what Mitsuba's load
+    does for the same mesh standing in that pose. But a mesh given its normals (a ``cube``, a mesh file with
+    normals) is loaded with them carried by the inverse transpose of its pose; a recomputation then turned it
+    inside out wherever the pose mirrors it (a negative scale: the triangles' winding turns inwards while the
+    carried normals point out) and discarded authored normals. The renderer sets those at each pose with
+    :func:`carried_normals`."""
+    v = np.array(params[f"{key}.vertex_positions"], dtype=np.float64).reshape(-1, 3)
     local = (np.linalg.inv(m0) @ np.c_[v, np.ones(len(v))].T).T[:, :3]
-    n32 = np.array(params[nkey], dtype=np.float32) if nkey in params else np.zeros(0, np.float32)
-    if n32.size != v32.size or n32.size == 0:  # no vertex normals: flat-shaded from its faces at any pose
+    nkey = f"{key}.vertex_normals"
+    n = np.array(params[nkey], dtype=np.float64).reshape(-1, 3) if carry and nkey in params else np.zeros((0, 3))
+    if len(n) != len(v) or len(n) == 0:
         return local, None
-    params[pkey] = _buffer_like(params, pkey, v32)
-    params.set_dirty(pkey)  # (setting equal values is a no-op on the scalar variants)
-    params.update()
-    recomputed = np.array(params[nkey], dtype=np.float32)
-    if np.allclose(recomputed, n32, rtol=0.0, atol=1e-5):
-        return local, None
-    params[nkey] = _buffer_like(params, nkey, n32)  # as loaded again (the positions are)
-    params.set_dirty(nkey)
-    params.update()
-    return local, n32.astype(np.float64).reshape(-1, 3) @ m0[:3, :3]  # (A0^T n^T)^T: undoes the load's A0^-T
+    return local, n @ m0[:3, :3]  # (A0^T n^T)^T: undoes the load's A0^-T (up to each normal's length)
 
 
 def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
@@ -195,6 +182,7 @@ class SceneRenderer:
         self.n_launches = 0  # render launches so far (benchmarks count the verification launches with it)
         self._kept = None  # {(t_s, spp): (seed, raw Phi)} of single-launch renders, while keep_renders() is on
         self._reusable = None  # what keep_renders() kept, until the first verified frame
+        carried = {obj["name"] for _, obj, _ in moving_meshes(scene) if carries_normals(scene, obj)}
         for key, (motion, shape_m) in self.motions.items():
             if motion.is_static:
                 continue
@@ -204,8 +192,9 @@ class SceneRenderer:
             elif pkey in self.params:
                 self._moving[key] = ("to_world", pkey, motion, shape_m, None)
             elif f"{key}.vertex_positions" in self.params:
+                carry = key in carried
                 self._moving[key] = ("vertices", f"{key}.vertex_positions", motion, shape_m,
-                                     _mesh_local_frame(self.params, key, motion.matrix(0.0) @ shape_m))
+                                     _mesh_local_frame(self.params, key, motion.matrix(0.0) @ shape_m, carry))
             else:
                 raise InputError(f"object '{key}' cannot be moved: Mitsuba exposes neither to_world nor "
                                  "vertex_positions for it", path=scene.path, field=f"objects.{key}.motion")
@@ -259,6 +248,9 @@ class SceneRenderer:
                 if n_local is not None:
                     nkey = f"{key}.vertex_normals"
                     self.params[nkey] = _buffer_like(self.params, nkey, carried_normals(m, n_local))
+                    # (the scalar variants skip a parameter set to equal values, and would then recompute
+                    # the normals for the moved positions: under a translation the carried ones are equal)
+                    self.params.set_dirty(nkey)
         self.params.update()
         self._t_set = t_s
 

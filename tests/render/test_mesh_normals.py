@@ -51,24 +51,65 @@ def _objects(tmp_path, case, motion):
     return [BACK, obj]
 
 
-@pytest.mark.parametrize("case", ["negative_scale_cube", "authored_normals"])
+def _plain_ply(tmp_path):
+    """A 3 cm icosphere PLY without normals: Mitsuba computes them from the triangles, at every pose."""
+    import trimesh
+    path = tmp_path / "plain.ply"
+    trimesh.creation.icosphere(subdivisions=2, radius=0.015).export(path)
+    assert b"nx" not in path.read_bytes().split(b"end_header")[0]
+    return str(path)
+
+
+V = [0.5, 0.2, 0.0]  # m/s: 2 px/ms right, 0.8 px/ms up at the scene's 2.5 mm per pixel
+TIMES = (0.0, 0.004, 0.008, 0.01)
+
+
+def _moving_and_still(tmp_path, case):
+    """(moving object, still(t_s) -> the same object standing in its pose at t_s) for a film-launch case:
+    translations of a mirrored cube and of a mesh with authored normals, and scales keyframed over time (a
+    cube's through zero into a mirror image, a plain mesh's non-uniformly), linear between t = 0 and 0.01 s."""
+    if case in ("negative_scale_cube", "authored_normals"):
+        obj = _objects(tmp_path, case, None)[1]
+        moving = {**obj, "motion": {"parametric": [{"translate": {"velocity_m_s": V}}]}}
+        return moving, lambda t: {**obj, "position": [x * t for x in V]}
+    if case == "cube_scaled_through_zero":
+        obj = {"name": "thing", "shape": "cube", "size": [0.06, 0.06, 0.06], "rotation_deg": [20.0, 30.0, 0.0],
+               "material": ONE_SIDED}
+        s0, s1 = np.array([1.0, 1.0, 1.0]), np.array([-1.0, 1.0, 1.0])
+    else:  # "plain_mesh_stretched"
+        obj = {"name": "thing", "shape": "mesh", "file": _plain_ply(tmp_path), "rotation_deg": [25.0, 35.0, 0.0],
+               "material": ONE_SIDED}
+        s0, s1 = np.array([1.0, 1.0, 1.0]), np.array([2.0, 0.4, 1.0])
+    moving = {**obj, "motion": {"keyframes": [{"time_s": 0.0, "scale": s0.tolist()},
+                                              {"time_s": 0.01, "scale": s1.tolist()}]}}
+    return moving, lambda t: {**obj, "scale": (s0 + (s1 - s0) * t / 0.01).tolist()}
+
+
+@pytest.mark.parametrize("case", ["negative_scale_cube", "authored_normals", "cube_scaled_through_zero",
+                                  "plain_mesh_stretched"])
 def test_a_moving_mesh_renders_as_it_stands_in_the_film_launch(tmp_path, write_scene, case):
-    # At t = 0 a moving mesh is where the same mesh standing still is: with the same seeds the two frames are
-    # the same estimate, up to the float32 round-off of the rewritten vertices (a sample's path changes only where
-    # it passes within ~1e-7 m of an edge: 2e-7 of the largest pixel at most, seen). Before the fix the moving
-    # negative-scale cube lost 72 % of the image mean (inside out), and the authored normals were recomputed.
+    # At each time a moving mesh renders as the same mesh standing still in its pose: with the same seeds the two
+    # frames are the same estimate, up to the float32 round-off of the rewritten vertices (a sample's path
+    # changes only where it passes within ~1e-7 m of an edge: 2.5e-7 of the largest pixel at most, seen). Before
+    # the fix the translating negative-scale cube lost 72 % of the image mean at t = 0 (inside out) and the
+    # authored normals were recomputed. The times after the first catch normals left to a recomputation when a
+    # pose only translates (the scalar variants skip an update to equal values); the keyframed scales, a cube
+    # mirrored part-way (its normals are carried though they equal a recomputation at t = 0) and a mesh without
+    # normals (recomputed at every pose, as its load would: carrying them mismatched by up to 5 % of a pixel).
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
-    frames = {}
-    for name, motion in (("still", None), ("moving", SLOW)):
-        sc = load_scene(write_scene({"objects": _objects(tmp_path, case, motion), "reference": REF},
-                                    name=f"{name}.yaml"))
-        r = SceneRenderer(sc, launch="film")
-        assert ("thing" in r._moving) == (motion is not None)
-        frames[name] = r.render_frame(0.0, 1, 16)["phi"]
-    a, b = frames["still"], frames["moving"]
-    assert abs(b.mean() / a.mean() - 1.0) < 1e-5
-    assert np.abs(b - a).max() <= 1e-4 * a.max()
+    moving, still = _moving_and_still(tmp_path, case)
+    r = SceneRenderer(load_scene(write_scene({"objects": [BACK, moving], "reference": REF}, name="moving.yaml")),
+                      launch="film")
+    assert "thing" in r._moving
+    for t in TIMES:
+        b = r.render_frame(t, 1, 16)["phi"]
+        sc = load_scene(write_scene({"objects": [BACK, still(t)], "reference": REF}, name="still.yaml"))
+        ref = SceneRenderer(sc, launch="film", calibration=r.calibration)
+        assert not ref._moving
+        a = ref.render_frame(t, 1, 16)["phi"]  # (same time: same seeds)
+        assert abs(b.mean() / a.mean() - 1.0) < 1e-5, (t, b.mean() / a.mean())
+        assert np.abs(b - a).max() <= 1e-4 * a.max(), (t, np.abs(b - a).max() / a.max())
 
 
 def test_the_film_launch_carries_authored_normals_by_the_inverse_transpose(tmp_path, write_scene):
@@ -118,6 +159,9 @@ def test_a_film_folder_of_a_moving_mesh_from_before_the_fix_is_not_resumed(tmp_p
     still = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", None), "reference": REF},
                                    name="still.yaml"))
     assert "mesh_normals" not in settings_of(still, v, "film")
+    plain, _ = _moving_and_still(tmp_path, "plain_mesh_stretched")  # a moving mesh without normals: frames as before
+    plain = load_scene(write_scene({"objects": [BACK, plain], "reference": REF}, name="plain.yaml"))
+    assert "mesh_normals" not in settings_of(plain, v, "film")
     out = tmp_path / "f"
     quiet = {"progress": False, "log": lambda *a: None}
     render_scene(sc, out, launch="film", **quiet)
@@ -131,9 +175,10 @@ def test_a_film_folder_of_a_moving_mesh_from_before_the_fix_is_not_resumed(tmp_p
         d.pop("mesh_normals")
         d["scene_hash"] = old_hash
         (out / name).write_text(json.dumps(d))
-    for launch in ("film", "auto"):
-        with pytest.raises(InputError, match="before the film launch carried its moving meshes' normals"):
+    for launch in ("film", "auto", "frozen"):
+        with pytest.raises(InputError, match="before the film launch carried its moving meshes' normals") as err:
             render_scene(sc, out, launch=launch, **quiet)
+        assert "--launch film to resume" not in str(err.value)  # (it would not resume it)
     assert render_scene(sc, out, launch="film", overwrite=True, **quiet).n_rendered > 0
 
 
@@ -153,7 +198,7 @@ def test_the_scalar_variant_moves_meshes_and_their_normals(tmp_path):
                         f"{__file__}::test_the_film_launch_carries_authored_normals_by_the_inverse_transpose",
                         f"{__file__}::test_the_scalar_variant_reports_its_variant"],
                        cwd=root, env=env, capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0 and "4 passed" in r.stdout, r.stdout[-3000:] + r.stderr[-2000:]
+    assert r.returncode == 0 and "6 passed" in r.stdout, r.stdout[-3000:] + r.stderr[-2000:]
 
 
 def test_the_scalar_variant_reports_its_variant():
@@ -162,3 +207,37 @@ def test_the_scalar_variant_reports_its_variant():
 
     from render2spike.render.backend import mitsuba
     assert mitsuba().variant() == os.environ.get("RENDER2SPIKE_VARIANT", mitsuba().variant())
+
+
+def test_which_mesh_files_bring_their_own_normals(tmp_path):
+    # builder.mesh_file_has_normals: what Mitsuba's loaders take from a file (PLY: an nx property of the vertex
+    # element, ASCII or binary; OBJ: vn lines that faces use); builder.carries_normals: a cube always
+    import trimesh
+
+    from render2spike.render.builder import carries_normals, mesh_file_has_normals
+    from sensor.errors import InputError
+    box = trimesh.creation.box(extents=[1, 1, 1])
+    assert mesh_file_has_normals(write_ply_with_normals(tmp_path / "a.ply"))
+    (tmp_path / "b.ply").write_bytes(trimesh.exchange.ply.export_ply(box, encoding="binary", vertex_normal=True))
+    (tmp_path / "c.ply").write_bytes(trimesh.exchange.ply.export_ply(box, encoding="binary", vertex_normal=False))
+    assert mesh_file_has_normals(tmp_path / "b.ply") and not mesh_file_has_normals(tmp_path / "c.ply")
+    # a normal-like property of another element is not a vertex normal
+    (tmp_path / "d.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                    "property float z\nelement face 1\nproperty float nx\n"
+                                    "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+                                    "0.5 3 0 1 2\n")
+    assert not mesh_file_has_normals(tmp_path / "d.ply")
+    tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\n"
+    for name, faces, want in (("e.obj", "f 1//1 2//1 3//1\n", True), ("f.obj", "f 1/1/1 2/1/1 3/1/1\n", True),
+                              ("g.obj", "f 1 2 3\n", False), ("h.obj", "f 1/1 2/1 3/1\n", False)):
+        (tmp_path / name).write_text(tri + faces)
+        assert mesh_file_has_normals(tmp_path / name) == want, name
+    with pytest.raises(InputError, match="cannot read the mesh file"):
+        mesh_file_has_normals(tmp_path / "missing.ply")
+
+    class _Scene:  # (carries_normals needs only Scene.file)
+        def file(self, name, field):
+            return tmp_path / name
+    assert carries_normals(_Scene(), {"shape": "cube"}) and not carries_normals(_Scene(), {"shape": "sphere"})
+    assert carries_normals(_Scene(), {"shape": "mesh", "file": "a.ply"})
+    assert not carries_normals(_Scene(), {"shape": "mesh", "file": "c.ply"})
