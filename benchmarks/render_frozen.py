@@ -13,7 +13,9 @@ before and after each child.
 
 ``--pipeline`` also times the render job per frame at each point (``render_scene`` with a fixed spp and
 no adaptive refinement, as ``benchmarks/render.py`` times its pipeline blocks) with each launch, so the job
-with the frozen launch can be set against the film launch's bare frame.
+with the frozen launch can be set against the film launch's bare frame. Beside it, per frozen round: the cost of
+creating one file in the job's folder (``file_create_probe``), and the frozen job again with its frame files left
+out (a diagnostic, not a job: what the rest of the job costs).
 
 ``--job`` also times the whole ``render2spike render`` command on one scene with each launch (the
 pilot, the noise budget, the verification renders and the frame files included; the frozen launch records
@@ -70,7 +72,7 @@ def child(scene: str, size: str, spp: int, launch: str, frames: int, warm: int) 
             "recordings": r._frozen.n_recordings if r._frozen is not None else None, "mean_phi": float(p.mean())}
 
 
-def pipeline_child(scene: str, size: str, spp: int, launch: str, frames: int) -> dict:
+def pipeline_child(scene: str, size: str, spp: int, launch: str, frames: int, write: bool = True) -> dict:
     """The render job's time per frame (ms) with ``launch``: ``render_scene`` of ``frames`` frames at ``spp``
     (adaptive refinement off), from its first frame's render to its return, as ``benchmarks/render.py``
     times its pipeline blocks (frame writes, journal, manifest and verification launches in; loading, the
@@ -96,6 +98,9 @@ def pipeline_child(scene: str, size: str, spp: int, launch: str, frames: int) ->
         return orig(self, t_s, *a, **k)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     rmod.SceneRenderer.render_frame = wrapped
+    if not write:  # the diagnostic: the job with its frame files left out (the journal still names them)
+        import sensor.frames
+        sensor.frames.write_frame = lambda *a, **k: None
     with tempfile.TemporaryDirectory(dir=HERE / ".scratch" if (HERE / ".scratch").is_dir() else None) as d:
         res = render_scene(sc, Path(d) / "f", progress=False, log=lambda *a: None, launch=launch)
         t_end = time.perf_counter()
@@ -114,10 +119,10 @@ def file_create_probe(folder: Path, n: int = 200) -> dict:
     write_bytes_atomic`` writes a frame; then removed. -> ``{"wall_ms", "sys_ms"}`` per file (the system CPU
     time of this process: the kernel's part, which a frame's writer thread takes from the render's threads).
 
-    Why: on the 2-CPU development VM (ext4 without a journal), ``perf`` put ~70 % of a file creation's time in
-    the inode allocator's scan for recently deleted inodes (``recently_deleted``, ``find_inode_bit``): 0.4-0.75
-    ms of kernel CPU per new file on 2026-11-26, where other file systems take ~0.03 ms. So the render job's
-    overhead per frame is reported beside it."""
+    Why: on the 2-CPU development VM (ext4 without a journal), ``perf`` put most of a file creation's time in
+    the inode allocator's scan for recently deleted inodes (``recently_deleted``, ``find_inode_bit``): 0.07-0.85
+    ms of kernel CPU per new file on 2026-11-26, against ~0.03 ms in an earlier round, as the benchmarks and
+    tests had deleted more or fewer files. So the render job's overhead per frame is reported beside it."""
     import resource
     data = b"\0" * 7000
     names = [(str(folder / f".probe-{os.getpid()}-{i}.part"), str(folder / f".probe-{os.getpid()}-{i}.exr"))
@@ -188,10 +193,13 @@ def report(res: dict) -> str:
               "verification launches in; kernel compilation out), against the film launch's bare frame above "
               "(the goal's bare `mi.render`) and against each launch's own bare frame; last, what creating one "
               "file (a frame's size, under a temp name, then renamed) cost in the frozen job's folder right after "
-              "it (`file_create_probe`), in wall ms and the kernel's CPU ms: the job makes one file per frame:", "",
+              "it (`file_create_probe`), in wall ms and the kernel's CPU ms: the job makes one file per frame; "
+              "and, a diagnostic, the frozen job with `write_frame` made a no-op (its frame files left out, the "
+              "rest as it is), in the same round:", "",
               "| scene | size | spp | job ms, film | job ms, frozen | frozen job / bare film launch | "
               "film job / its launch | frozen job / its launch | frozen job - its launch, ms | "
-              "a file's creation, ms (sys CPU) |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "a file's creation, ms (sys CPU) | frozen job without its frame files / its launch |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
         for p in res["points"]:
             if not p.get("pipeline_film"):
                 continue
@@ -205,7 +213,9 @@ def report(res: dict) -> str:
                      f"{fmt(jz)} | {fmt([a / b for a, b in zip(jz, f)])} | {fmt([a / b for a, b in zip(jf, f)])} | "
                      f"{fmt([a / b for a, b in zip(jz, z)])} | {fmt([a - b for a, b in zip(jz, z)])} | "
                      + (", ".join(f"{r['file_create']['wall_ms']:.2f} ({r['file_create']['sys_ms']:.2f})"
-                                  if r.get("file_create") else "-" for r in p["pipeline_frozen"])) + " |")
+                                  if r.get("file_create") else "-" for r in p["pipeline_frozen"])) + " | "
+                     + (fmt([r["median_ms"] / b for r, b in zip(p["pipeline_nowrite_frozen"], z)])
+                        if p.get("pipeline_nowrite_frozen") else "-") + " |")
     if res.get("jobs"):
         L += ["", "`render2spike render SCENE --launch ...` (whole command, fresh folder, bundled scene):", "",
               "| scene | launch | wall s | frames | spp | render/shot noise | load |", "|---|---|---|---|---|---|---|"]
@@ -233,8 +243,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.child:
         kind, scene, size, spp, launch, frames, warm = a.child
-        if kind == "pipeline":
-            print(json.dumps(pipeline_child(scene, size, int(spp), launch, int(frames))))
+        if kind in ("pipeline", "pipeline_nowrite"):
+            print(json.dumps(pipeline_child(scene, size, int(spp), launch, int(frames), kind == "pipeline")))
         else:
             print(json.dumps(child(scene, size, int(spp), launch, int(frames), int(warm))))
         return 0
@@ -255,13 +265,13 @@ def main(argv=None) -> int:
            "rounds": a.rounds, "frames": a.frames, "warm": a.warm, "points": [], "jobs": []}
     for scene, size, spp in points:
         p = {"scene": scene, "size": size, "spp": spp, "film": [], "frozen": [], "pipeline_film": [],
-             "pipeline_frozen": []}
+             "pipeline_frozen": [], "pipeline_nowrite_frozen": []}
         kinds = ("launch", "pipeline") if a.pipeline else ("launch",)
         for rnd in range(a.rounds):
             for launch in (("film", "frozen") if rnd % 2 == 0 else ("frozen", "film")):
-                for kind in kinds:
+                for kind in kinds + (("pipeline_nowrite",) if a.pipeline and launch == "frozen" else ()):
                     row = _run_child([kind, scene, size, str(spp), launch, str(a.frames), str(a.warm)])
-                    p[launch if kind == "launch" else f"pipeline_{launch}"].append(row)
+                    p[launch if kind == "launch" else f"{kind}_{launch}"].append(row)
                     print(f"{scene} {size} {spp} spp {launch} {kind}: {row['median_ms']:.2f} ms/frame "
                           f"(load {row['load_before'][0]}-{row['load_after'][0]})", flush=True)
         res["points"].append(p)

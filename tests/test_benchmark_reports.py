@@ -176,6 +176,7 @@ def test_frozen_launch_report_pairs_rounds_and_columns():
          "film": [row(4.0), row(6.0)], "frozen": [row(2.0, rec=3), row(1.5, lb=0.5, la=2.5, rec=2)],
          "pipeline_film": [row(5.0), row(6.6)], "pipeline_frozen": [row(3.0), row(3.0)]}
     p["pipeline_frozen"][0]["file_create"] = {"wall_ms": 0.61, "sys_ms": 0.55}  # (the second: a run before the probe)
+    p["pipeline_nowrite_frozen"] = [row(2.2), row(1.8)]
     res = {"when": "now", "machine": "m", "rounds": 2, "frames": 8, "warm": 1, "points": [p],
            "jobs": [{"scene": "plane", "launch": "frozen", "wall_s": 1.5, "frames": 3, "spp": 35,
                      "render_noise_ratio": 0.197, "load_before": [0.7], "load_after": [0.9]}]}
@@ -187,7 +188,8 @@ def test_frozen_launch_report_pairs_rounds_and_columns():
     cells = [c.strip() for c in job_row.strip("|").split("|")]
     # frozen job / bare film launch, film job / film launch, frozen job / frozen launch
     assert cells[3:8] == ["5.00, 6.60", "3.00, 3.00", "0.75, 0.50", "1.25, 1.10", "1.50, 2.00"]
-    assert cells[8:10] == ["1.00, 1.50", "0.61 (0.55), -"]  # frozen job - its launch (ms); the file-creation probe
+    # frozen job - its launch (ms); the file-creation probe; the job without frame files / its launch
+    assert cells[8:11] == ["1.00, 1.50", "0.61 (0.55), -", "1.10, 1.20"]
     assert "| plane | frozen | 1.50 | 3 | 35 | 0.197 | 0.70-0.90 |" in text
 
 
