@@ -11,6 +11,8 @@ Shapes and their local geometry (before the object's pose T R S):
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from sensor.errors import DependencyError, InputError
@@ -73,42 +75,76 @@ def moving_meshes(scene: Scene) -> list[tuple[int, dict, Motion]]:
         if obj["shape"] in ("cube", "mesh"):
             motion = object_motion(obj, f"objects.{i}.")
             if not motion.is_static:
+                _check_start_pose(scene, obj, motion, f"objects.{i}.")
                 out.append((i, obj, motion))
     return out
 
 
+def _ply_has_normals(fh) -> bool:
+    head = b""
+    while b"end_header" not in head and len(head) < 1 << 20:
+        chunk = fh.read(4096)
+        if not chunk:
+            break
+        head += chunk
+    element, props = None, set()
+    for line in head.split(b"end_header")[0].decode("latin-1").splitlines():
+        tok = line.split()
+        if tok[:1] == ["element"] and len(tok) > 1:
+            element = tok[1]
+        elif tok[:1] == ["property"] and element == "vertex" and tok:
+            props.add(tok[-1])
+    return {"nx", "ny", "nz"} <= props
+
+
+def _obj_normals(fh) -> tuple[bool, int, int]:
+    """(has ``vn`` lines, face corners with a normal index, face corners without one) of an OBJ, its lines
+    tokenised as Mitsuba's loader does (leading blanks skipped, tokens split on blanks and tabs)."""
+    has_vn, with_n, without_n = False, 0, 0
+    for line in fh:
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == b"vn":
+            has_vn = True
+        elif tok[0] == b"f":
+            for corner in tok[1:]:
+                parts = corner.split(b"/")
+                if len(parts) >= 3 and parts[2]:
+                    with_n += 1
+                else:
+                    without_n += 1
+    return has_vn, with_n, without_n
+
+
+@functools.lru_cache(maxsize=64)
+def _mesh_file_normals(path: str, mtime_ns: int, size: int) -> bool:
+    from pathlib import Path
+    with open(path, "rb") as fh:
+        if Path(path).suffix.lower() == ".ply":
+            return _ply_has_normals(fh)
+        has_vn, with_n, without_n = _obj_normals(fh)
+    if has_vn and without_n:
+        raise InputError(f"the OBJ has vertex normals (vn lines) but {without_n} face corner(s) without a normal "
+                         f"index (and {with_n} with one): Mitsuba's loader then leaves those normals undefined "
+                         "(other garbage in every load). Give every face corner a normal (f v//vn or f v/vt/vn) "
+                         "or drop the vn lines", path=path)
+    return has_vn
+
+
 def mesh_file_has_normals(path) -> bool:
     """Whether Mitsuba loads vertex normals from the mesh file ``path`` (rather than computing them from its
-    triangles): a PLY whose ``vertex`` element has an ``nx`` property, or an OBJ with ``vn`` lines whose faces
-    use them (``f v//n`` or ``f v/t/n``). Reads the PLY's header only; an OBJ is scanned line by line.
-    Raises :class:`~sensor.errors.InputError` for a file it cannot read."""
+    triangles): a PLY whose ``vertex`` element has ``nx``, ``ny`` and ``nz`` properties (its header is read),
+    or an OBJ with ``vn`` lines (scanned line by line; cached per file, size and time of change).
+
+    Raises :class:`~sensor.errors.InputError` for a file it cannot read, and for an OBJ with ``vn`` lines
+    and faces without normal indices, whose normals Mitsuba 3.9 leaves undefined (it computes normals only
+    for an OBJ without any ``vn`` line: such a mesh rendered differently at every load)."""
     from pathlib import Path
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
-            if path.suffix.lower() == ".ply":
-                head = b""
-                while b"end_header" not in head and len(head) < 1 << 20:
-                    chunk = fh.read(4096)
-                    if not chunk:
-                        break
-                    head += chunk
-                element = None
-                for line in head.split(b"end_header")[0].decode("latin-1").splitlines():
-                    tok = line.split()
-                    if tok[:1] == ["element"] and len(tok) > 1:
-                        element = tok[1]
-                    elif tok[:1] == ["property"] and element == "vertex" and tok[-1] == "nx":
-                        return True
-                return False
-            has_vn = uses_vn = False
-            for line in fh:
-                if line.startswith(b"vn "):
-                    has_vn = True
-                elif line.startswith(b"f ") and not uses_vn:
-                    corner = line.split()[1:2]
-                    uses_vn = bool(corner) and corner[0].count(b"/") == 2 and not corner[0].endswith(b"/")
-            return has_vn and uses_vn
+        st = path.stat()
+        return _mesh_file_normals(str(path), st.st_mtime_ns, st.st_size)
     except OSError as exc:
         raise InputError(f"cannot read the mesh file ({exc})", path=path) from exc
 
@@ -122,7 +158,10 @@ def carries_normals(scene: Scene, obj: dict) -> bool:
     from the posed triangles."""
     if obj["shape"] == "cube":
         return True
-    return obj["shape"] == "mesh" and mesh_file_has_normals(scene.file(obj["file"], "objects.file"))
+    if obj["shape"] != "mesh":
+        return False
+    where = next((f"objects.{i}.file" for i, o in enumerate(scene.data["objects"]) if o is obj), "objects.file")
+    return mesh_file_has_normals(scene.file(obj["file"], where))
 
 
 def camera_motion(cam: dict) -> Motion:
@@ -131,7 +170,8 @@ def camera_motion(cam: dict) -> Motion:
 
 
 def check_mesh(path) -> int:
-    """Load a mesh with trimesh to check it; returns its face count."""
+    """Load a mesh with trimesh to check it, and its normals as Mitsuba would take them
+    (:func:`mesh_file_has_normals`); returns its face count."""
     try:
         import trimesh
     except ImportError as exc:
@@ -142,7 +182,22 @@ def check_mesh(path) -> int:
         raise InputError(f"trimesh cannot read this mesh ({exc})", path=path) from exc
     if not hasattr(m, "faces") or len(m.faces) == 0:
         raise InputError("the mesh has no faces", path=path)
+    mesh_file_has_normals(path)  # (refuses an OBJ whose normals Mitsuba would leave undefined)
     return int(len(m.faces))
+
+
+def _check_start_pose(scene: Scene, obj: dict, motion: Motion, where: str) -> None:
+    """Refuse a moving mesh whose pose at t = 0 is flat (a scale keyframed through zero there): both launches
+    place a moving mesh in its t = 0 pose and move it from there, which needs that pose's inverse."""
+    if motion.is_static:
+        return
+    with np.errstate(all="ignore"):
+        c = np.linalg.cond((motion.matrix(0.0) @ shape_matrix(obj))[:3, :3])
+    if not (np.isfinite(c) and c < 1e12):
+        raise InputError("this moving mesh has a zero scale along an axis at t = 0 (keyframed scales pass "
+                         "through zero there): a moving mesh is placed in its t = 0 pose and moved from it, "
+                         "which a flat pose cannot give. Move the keyframes so that the scale is not zero at "
+                         "t = 0", path=scene.path, field=f"{where}motion")
 
 
 def bsdf_dict(mi, obj: dict, scene: Scene) -> dict:
@@ -302,6 +357,8 @@ def build_dict(mi, scene: Scene, *, spp: int = 4, for_meter: dict | None = None)
         sm = shape_matrix(obj)
         motions[key] = (mo, sm)
         shp = obj["shape"]
+        if shp in ("cube", "mesh"):
+            _check_start_pose(scene, obj, mo, where)
         od = {"to_world": to_transform(mi, mo.matrix(0.0) @ sm), "bsdf": bsdf_dict(mi, obj, scene)}
         if shp == "mesh":
             f = scene.file(obj["file"], f"{where}file")

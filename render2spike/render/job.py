@@ -305,6 +305,47 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         lock.release()
 
 
+def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash: str, old_variant: str | None,
+                  old_launch: str, manifest: dict, state: dict) -> str:
+    """What to do about a folder whose frames' hash (``old_hash``) is not this run's: a sentence per cause that
+    is known to explain it, each said only where it does (the folder's hash recomputed with the cause undone)."""
+    def same_with(**kw) -> bool:
+        d = settings_of(scene, kw.get("variant", variant), kw.get("launch", launch))
+        if kw.get("no_mesh_normals") and d.pop("mesh_normals", None) is None:
+            return False  # (no moving mesh whose normals the film launch carries: not the cause)
+        return scene.content_hash(d) == old_hash
+
+    hint = ""
+    other_family = bool(old_variant) and backend.variant_family(old_variant) != backend.variant_family(variant)
+    other_launch = (old_launch != launch and asked != "auto"  # (auto would have taken the folder's launch)
+                    and old_launch in ("film", "frozen") and same_with(variant=old_variant or variant,
+                                                                       launch=old_launch))
+    if other_family and other_launch:
+        hint = (f" It was rendered with Mitsuba '{old_variant}' and the {old_launch} launch, and this run uses "
+                f"'{variant}' and the {launch} launch: pass --variant {old_variant} --launch {old_launch} to "
+                "resume it.")
+    elif other_family:
+        hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
+                f"--variant {old_variant} to resume it.")
+    elif other_launch:
+        hint = (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
+                f"pass --launch {old_launch} to resume it.")
+    old_est = manifest.get("launch_estimator")
+    if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION:
+        was = f"estimator {old_est}" if old_est is not None else "an estimator before 3, unrecorded"
+        hint += (f" If nothing else changed, its frames were made by an earlier version of the frozen "
+                 f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
+                 "renders them again.")
+    old_normals = manifest.get("mesh_normals", state.get("mesh_normals"))
+    if (old_launch == "film" and old_normals != FILM_MESH_NORMALS
+            and same_with(variant=old_variant or variant, launch="film", no_mesh_normals=True)):
+        hint += (" Its frames were made by the film launch before it carried its moving meshes' normals "
+                 "along (2026-11-26; Mitsuba had recomputed them, which turned a mesh with a negative scale "
+                 "inside out and lost a mesh file's own normals), and are not resumed: --overwrite renders "
+                 "them again.")
+    return hint
+
+
 def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, variant, log, wrote,
                    launch: str = DEFAULT_LAUNCH) -> RenderResult:
     t_start = time.perf_counter()
@@ -322,27 +363,8 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
     if old_hash is not None and old_hash != scene_hash:
         if not overwrite:
             old_variant = (manifest or {}).get("variant") or (state or {}).get("variant")
-            hint = ""
-            if old_variant and backend.variant_family(old_variant) != backend.variant_family(variant):
-                hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
-                        f"--variant {old_variant} to resume it.")
-            if (old_launch != launch and asked != "auto"  # (auto would have taken the folder's launch)
-                    and old_launch in ("film", "frozen")  # (and only where that launch would resume it)
-                    and scene.content_hash(settings_of(scene, old_variant or variant, old_launch)) == old_hash):
-                hint += (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
-                         f"pass --launch {old_launch} to resume it.")
-            old_est = (manifest or {}).get("launch_estimator")
-            if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION:
-                was = f"estimator {old_est}" if old_est is not None else "an estimator before 3, unrecorded"
-                hint += (f" If nothing else changed, its frames were made by an earlier version of the frozen "
-                         f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
-                         "renders them again.")
-            old_normals = (manifest or {}).get("mesh_normals", (state or {}).get("mesh_normals"))
-            if old_launch == "film" and old_normals != FILM_MESH_NORMALS and _carries_moving_normals(scene):
-                hint += (" If nothing else changed, its frames were made before the film launch carried its moving "
-                         "meshes' normals along (2026-11-26; Mitsuba had recomputed them, which turned a mesh with "
-                         "a negative scale inside out and lost a mesh file's own normals), which are not resumed: "
-                         "--overwrite renders them again.")
+            hint = _refusal_hint(scene, variant, launch, asked, old_hash, old_variant, old_launch,
+                                 manifest or {}, state or {})
             raise InputError(f"this folder holds frames of a different scene or settings (hash {old_hash}, now "
                              f"{scene_hash}); rerun with --overwrite to replace them, or choose another --out."
                              + hint, path=out)

@@ -176,10 +176,41 @@ def test_a_film_folder_of_a_moving_mesh_from_before_the_fix_is_not_resumed(tmp_p
         d["scene_hash"] = old_hash
         (out / name).write_text(json.dumps(d))
     for launch in ("film", "auto", "frozen"):
-        with pytest.raises(InputError, match="before the film launch carried its moving meshes' normals") as err:
+        with pytest.raises(InputError, match="film launch before it carried its moving meshes' normals") as err:
             render_scene(sc, out, launch=launch, **quiet)
         assert "--launch film to resume" not in str(err.value)  # (it would not resume it)
     assert render_scene(sc, out, launch="film", overwrite=True, **quiet).n_rendered > 0
+    # every film-launch folder records it, a static scene's too
+    render_scene(still, tmp_path / "s", launch="film", **quiet)
+    m = json.loads((tmp_path / "s" / MANIFEST_NAME).read_text())
+    assert m["mesh_normals"] == "carried" and m["launch"] == "film"
+    # a folder of the older film launch whose scene changed since (the cube made to move) is not blamed on it
+    for name in (MANIFEST_NAME, STATE_NAME):
+        d = json.loads((tmp_path / "s" / name).read_text())
+        d.pop("mesh_normals")
+        (tmp_path / "s" / name).write_text(json.dumps(d))
+    with pytest.raises(InputError, match="different scene or settings") as err:
+        render_scene(sc, tmp_path / "s", launch="film", **quiet)
+    assert "normals" not in str(err.value)
+
+
+def test_a_refusal_names_every_cause_that_explains_it_in_one_command(tmp_path, write_scene):
+    # _refusal_hint: a folder of the film launch on a GPU variant, refused on the CPU with --launch frozen, needs
+    # both switches: one sentence names both; each alone is named when it alone explains the folder's hash
+    from render2spike.render.job import _refusal_hint, settings_of
+    from render2spike.render.scene import load_scene
+    sc = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", SLOW), "reference": REF}))
+    gpu, cpu = "cuda_ad_spectral", "llvm_ad_spectral"
+    both = sc.content_hash(settings_of(sc, gpu, "film"))
+    h = _refusal_hint(sc, cpu, "frozen", "frozen", both, gpu, "film", {}, {})
+    assert f"pass --variant {gpu} --launch film to resume it" in h and h.count("resume it") == 1
+    h = _refusal_hint(sc, cpu, "film", "film", both, gpu, "film", {"mesh_normals": "carried"}, {})
+    assert f"pass --variant {gpu} to resume it" in h and "--launch" not in h
+    launch_only = sc.content_hash(settings_of(sc, cpu, "film"))
+    h = _refusal_hint(sc, cpu, "frozen", "frozen", launch_only, cpu, "film", {"mesh_normals": "carried"}, {})
+    assert "pass --launch film to resume it" in h and "--variant" not in h
+    # a hash that neither explains (another scene): no advice to switch
+    assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, cpu, "film", {}, {})
 
 
 def test_the_scalar_variant_moves_meshes_and_their_normals(tmp_path):
@@ -227,17 +258,92 @@ def test_which_mesh_files_bring_their_own_normals(tmp_path):
                                     "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
                                     "0.5 3 0 1 2\n")
     assert not mesh_file_has_normals(tmp_path / "d.ply")
-    tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\n"
-    for name, faces, want in (("e.obj", "f 1//1 2//1 3//1\n", True), ("f.obj", "f 1/1/1 2/1/1 3/1/1\n", True),
-                              ("g.obj", "f 1 2 3\n", False), ("h.obj", "f 1/1 2/1 3/1\n", False)):
-        (tmp_path / name).write_text(tri + faces)
+    # all three of nx, ny, nz, or Mitsuba computes them
+    (tmp_path / "i.ply").write_text((tmp_path / "d.ply").read_text().replace(
+        "property float z\nelement face 1\nproperty float nx\n", "property float z\nproperty float nx\n"
+        "element face 1\n").replace("0 0 0\n1 0 0\n0 1 0\n", "0 0 0 1\n1 0 0 1\n0 1 0 1\n"))
+    assert not mesh_file_has_normals(tmp_path / "i.ply")
+    # OBJ lines are tokenised as Mitsuba's loader does: leading blanks, tabs, CRLF
+    tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\n"
+    for name, lines, want in (("e.obj", "vn 0 0 1\nf 1//1 2//1 3//1\n", True),
+                              ("f.obj", "vn 0 0 1\nf 1/1/1 2/1/1 3/1/1\n", True),
+                              ("g.obj", "vn\t0 0 1\r\n  f\t1//1 2//1 3//1\r\n", True),
+                              ("h.obj", "   vn 0 0 1\nf 1//1 2//1 3//1\n", True),
+                              ("k.obj", "f 1 2 3\n", False), ("l.obj", "f 1/1 2/1 3/1\n", False)):
+        (tmp_path / name).write_text(tri + lines)
         assert mesh_file_has_normals(tmp_path / name) == want, name
+    # vn lines with faces that give no normal index: Mitsuba 3.9 leaves those normals undefined (garbage that
+    # changes from load to load): refused, naming the file
+    for name, faces in (("m.obj", "f 1 2 3\n"), ("n.obj", "f 1/1 2/1 3/1\n"), ("o.obj", "f 1/1/ 2/1/ 3/1/\n"),
+                        ("p.obj", "f 1//1 2//1 3//1\nf 1 2 3\n")):
+        (tmp_path / name).write_text(tri + "vn 0 0 1\n" + faces)
+        with pytest.raises(InputError, match="without a normal index") as err:
+            mesh_file_has_normals(tmp_path / name)
+        assert name in str(err.value)
     with pytest.raises(InputError, match="cannot read the mesh file"):
         mesh_file_has_normals(tmp_path / "missing.ply")
 
-    class _Scene:  # (carries_normals needs only Scene.file)
+    class _Scene:  # (carries_normals needs only Scene.file and the objects, for the field a refusal names)
+        data = {"objects": []}
+
         def file(self, name, field):
             return tmp_path / name
     assert carries_normals(_Scene(), {"shape": "cube"}) and not carries_normals(_Scene(), {"shape": "sphere"})
     assert carries_normals(_Scene(), {"shape": "mesh", "file": "a.ply"})
     assert not carries_normals(_Scene(), {"shape": "mesh", "file": "c.ply"})
+
+
+def test_a_moving_mesh_flat_at_t0_is_refused(tmp_path, write_scene):
+    # Both launches place a moving mesh in its t = 0 pose and move it from there: a scale keyframed through zero
+    # exactly at t = 0 is refused with the field to change (it raised numpy's LinAlgError before)
+    from render2spike.render.frozen import resolve_launch
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    obj = {"name": "thing", "shape": "cube", "size": [0.06, 0.06, 0.06], "material": ONE_SIDED,
+           "motion": {"keyframes": [{"time_s": -0.005, "scale": [1.0, 1.0, 1.0]},
+                                    {"time_s": 0.005, "scale": [-1.0, 1.0, 1.0]}]}}
+    sc = load_scene(write_scene({"objects": [BACK, obj], "reference": REF}))
+    for call in (lambda: resolve_launch("auto", "llvm_ad_spectral", sc), lambda: SceneRenderer(sc, launch="film")):
+        with pytest.raises(InputError, match="zero scale along an axis at t = 0") as err:
+            call()
+        assert "objects.1.motion" in str(err.value)
+
+
+def test_the_normals_rule_agrees_with_mitsubas_loaders(tmp_path):
+    # The oracle: Mitsuba itself. A file whose normals it keeps has, after loading, normals that are not its own
+    # recomputation from the triangles (every normal here is +z, which no tetrahedron's faces give); a file it
+    # computes them for has its recomputation. mesh_file_has_normals must say which, file by file.
+    from render2spike.render.backend import mitsuba
+    from render2spike.render.builder import mesh_file_has_normals
+    mi = mitsuba()
+    tet_v = ["0 0 0", "1 0 0", "0 1 0", "0 0 1"]
+    tet_f = [(1, 3, 2), (1, 2, 4), (1, 4, 3), (2, 3, 4)]
+    objs = {
+        "vv_n.obj": "\n".join(f"v {v}" for v in tet_v) + "\nvn 0 0 1\n"
+                    + "".join(f"f {a}//1 {b}//1 {c}//1\n" for a, b, c in tet_f),
+        "tabs.obj": "\n".join(f"v {v}" for v in tet_v) + "\r\nvt 0 0\r\n  vn\t0 0 1\r\n"
+                    + "".join(f"\tf\t{a}/1/1 {b}/1/1 {c}/1/1\r\n" for a, b, c in tet_f),
+        "plain.obj": "\n".join(f"v {v}" for v in tet_v) + "\n" + "".join(f"f {a} {b} {c}\n" for a, b, c in tet_f),
+    }
+    for name, text in objs.items():
+        (tmp_path / name).write_text(text)
+
+    def ply(name, props, rows):
+        head = ["ply", "format ascii 1.0", "element vertex 4", "property float x", "property float y",
+                "property float z", *[f"property float {p}" for p in props], "element face 4",
+                "property list uchar int vertex_indices", "end_header"]
+        body = [f"{v} {rows}".strip() for v in tet_v] + [f"3 {a - 1} {b - 1} {c - 1}" for a, b, c in tet_f]
+        (tmp_path / name).write_text("\n".join(head + body) + "\n")
+    ply("n.ply", ["nx", "ny", "nz"], "0 0 1")
+    ply("nx_only.ply", ["nx"], "1")
+    ply("plain.ply", [], "")
+    for name in (*objs, "n.ply", "nx_only.ply", "plain.ply"):
+        s = mi.load_dict({"type": "scene", "m": {"type": name.split(".")[1], "filename": str(tmp_path / name)}})
+        p = mi.traverse(s)
+        loaded = np.array(p["m.vertex_normals"])
+        p["m.vertex_positions"] = type(p["m.vertex_positions"])(np.array(p["m.vertex_positions"]))
+        p.set_dirty("m.vertex_positions")
+        p.update()
+        kept = not np.allclose(loaded, np.array(p["m.vertex_normals"]), atol=1e-4)
+        assert mesh_file_has_normals(tmp_path / name) == kept, name
