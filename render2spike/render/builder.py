@@ -81,72 +81,87 @@ def moving_meshes(scene: Scene) -> list[tuple[int, dict, Motion]]:
 
 
 def _ply_has_normals(fh) -> bool:
-    head = b""
-    while b"end_header" not in head and len(head) < 1 << 20:
-        chunk = fh.read(4096)
-        if not chunk:
-            break
-        head += chunk
     element, props = None, set()
-    for line in head.split(b"end_header")[0].decode("latin-1").splitlines():
+    for n, raw in enumerate(fh):
+        line = raw.decode("latin-1").strip()
+        if line == "end_header" or n > 10000:
+            break
         tok = line.split()
         if tok[:1] == ["element"] and len(tok) > 1:
             element = tok[1]
-        elif tok[:1] == ["property"] and element == "vertex" and tok:
+        elif tok[:1] == ["property"] and element == "vertex":
             props.add(tok[-1])
     return {"nx", "ny", "nz"} <= props
 
 
+def _obj_keyword(line: bytes, word: bytes) -> bytes | None:
+    """The rest of an OBJ ``line`` after its keyword ``word`` followed by a blank or tab (Mitsuba's test), or
+    None: leading blanks, tabs and carriage returns are skipped."""
+    line = line.lstrip(b" \t\r")
+    n = len(word)
+    return line[n + 1:] if line[:n] == word and line[n:n + 1] in (b" ", b"\t") else None
+
+
 def _obj_normals(fh) -> tuple[bool, int, int]:
-    """(has ``vn`` lines, face corners with a normal index, face corners without one) of an OBJ, its lines
-    tokenised as Mitsuba's loader does (leading blanks skipped, tokens split on blanks and tabs)."""
+    """(has ``vn`` lines, face corners with a normal, face corners without one) of an OBJ, read as Mitsuba
+    3.9's loader reads it: a corner's normal is its third index (``v//n``, ``v/t/n``; 0 is none), and a
+    corner without one takes the last one given before it on the same face line."""
     has_vn, with_n, without_n = False, 0, 0
     for line in fh:
-        tok = line.split()
-        if not tok:
-            continue
-        if tok[0] == b"vn":
+        if _obj_keyword(line, b"vn") is not None:
             has_vn = True
-        elif tok[0] == b"f":
-            for corner in tok[1:]:
-                parts = corner.split(b"/")
-                if len(parts) >= 3 and parts[2]:
-                    with_n += 1
-                else:
-                    without_n += 1
+            continue
+        rest = _obj_keyword(line, b"f")
+        if rest is None:
+            continue
+        given = False
+        for corner in rest.replace(b"\t", b" ").split(b" "):
+            corner = corner.strip(b"\r\n")
+            if not corner:
+                continue
+            parts = corner.split(b"/")
+            given = given or (len(parts) >= 3 and parts[2].strip() not in (b"", b"0"))
+            if given:
+                with_n += 1
+            else:
+                without_n += 1
     return has_vn, with_n, without_n
 
 
 @functools.lru_cache(maxsize=64)
-def _mesh_file_normals(path: str, mtime_ns: int, size: int) -> bool:
+def _mesh_file_normals(path: str, stamp: tuple) -> tuple[bool, str | None]:
+    """-> (has normals, why the file is refused or None); ``stamp`` (inode, size, times) keys the cache."""
     from pathlib import Path
     with open(path, "rb") as fh:
         if Path(path).suffix.lower() == ".ply":
-            return _ply_has_normals(fh)
+            return _ply_has_normals(fh), None
         has_vn, with_n, without_n = _obj_normals(fh)
     if has_vn and without_n:
-        raise InputError(f"the OBJ has vertex normals (vn lines) but {without_n} face corner(s) without a normal "
-                         f"index (and {with_n} with one): Mitsuba's loader then leaves those normals undefined "
-                         "(other garbage in every load). Give every face corner a normal (f v//vn or f v/vt/vn) "
-                         "or drop the vn lines", path=path)
-    return has_vn
+        return True, (f"the OBJ has vertex normals (vn lines) but {without_n} face corner(s) without a normal "
+                      f"index (and {with_n} with one): Mitsuba 3.9's loader leaves those normals undefined (other "
+                      "garbage from load to load). Give every face corner a normal (f v//vn or f v/vt/vn) or "
+                      "drop the vn lines")
+    return has_vn, None
 
 
-def mesh_file_has_normals(path) -> bool:
+def mesh_file_has_normals(path, field: str | None = None) -> bool:
     """Whether Mitsuba loads vertex normals from the mesh file ``path`` (rather than computing them from its
     triangles): a PLY whose ``vertex`` element has ``nx``, ``ny`` and ``nz`` properties (its header is read),
-    or an OBJ with ``vn`` lines (scanned line by line; cached per file, size and time of change).
+    or an OBJ with ``vn`` lines (scanned line by line; cached per file and its inode, size and times).
 
-    Raises :class:`~sensor.errors.InputError` for a file it cannot read, and for an OBJ with ``vn`` lines
-    and faces without normal indices, whose normals Mitsuba 3.9 leaves undefined (it computes normals only
-    for an OBJ without any ``vn`` line: such a mesh rendered differently at every load)."""
+    Raises :class:`~sensor.errors.InputError` (naming ``field``, the scene file's field) for a file it cannot
+    read, and for an OBJ with ``vn`` lines and a face without any normal index, whose normals Mitsuba 3.9
+    leaves undefined (it computes normals only for an OBJ without any ``vn`` line)."""
     from pathlib import Path
     path = Path(path)
     try:
         st = path.stat()
-        return _mesh_file_normals(str(path), st.st_mtime_ns, st.st_size)
+        has, refused = _mesh_file_normals(str(path), (st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
     except OSError as exc:
-        raise InputError(f"cannot read the mesh file ({exc})", path=path) from exc
+        raise InputError(f"cannot read the mesh file ({exc})", path=path, field=field) from exc
+    if refused:
+        raise InputError(refused, path=path, field=field)
+    return has
 
 
 def carries_normals(scene: Scene, obj: dict) -> bool:
@@ -161,7 +176,7 @@ def carries_normals(scene: Scene, obj: dict) -> bool:
     if obj["shape"] != "mesh":
         return False
     where = next((f"objects.{i}.file" for i, o in enumerate(scene.data["objects"]) if o is obj), "objects.file")
-    return mesh_file_has_normals(scene.file(obj["file"], where))
+    return mesh_file_has_normals(scene.file(obj["file"], where), where)
 
 
 def camera_motion(cam: dict) -> Motion:
@@ -169,9 +184,10 @@ def camera_motion(cam: dict) -> Motion:
     return Motion.from_spec(base, cam.get("motion"), where="camera.")
 
 
-def check_mesh(path) -> int:
+def check_mesh(path, field: str | None = None) -> int:
     """Load a mesh with trimesh to check it, and its normals as Mitsuba would take them
-    (:func:`mesh_file_has_normals`); returns its face count."""
+    (:func:`mesh_file_has_normals`; ``field``: the scene file's field, for its refusal); returns its face
+    count."""
     try:
         import trimesh
     except ImportError as exc:
@@ -182,7 +198,7 @@ def check_mesh(path) -> int:
         raise InputError(f"trimesh cannot read this mesh ({exc})", path=path) from exc
     if not hasattr(m, "faces") or len(m.faces) == 0:
         raise InputError("the mesh has no faces", path=path)
-    mesh_file_has_normals(path)  # (refuses an OBJ whose normals Mitsuba would leave undefined)
+    mesh_file_has_normals(path, field)  # (refuses an OBJ whose normals Mitsuba would leave undefined)
     return int(len(m.faces))
 
 
@@ -194,10 +210,13 @@ def _check_start_pose(scene: Scene, obj: dict, motion: Motion, where: str) -> No
     with np.errstate(all="ignore"):
         c = np.linalg.cond((motion.matrix(0.0) @ shape_matrix(obj))[:3, :3])
     if not (np.isfinite(c) and c < 1e12):
-        raise InputError("this moving mesh has a zero scale along an axis at t = 0 (keyframed scales pass "
-                         "through zero there): a moving mesh is placed in its t = 0 pose and moved from it, "
-                         "which a flat pose cannot give. Move the keyframes so that the scale is not zero at "
-                         "t = 0", path=scene.path, field=f"{where}motion")
+        keyed = any("scale" in k for k in (obj.get("motion") or {}).get("keyframes", []))
+        field = f"{where}motion" if keyed else (f"{where}scale" if "scale" in obj else f"{where}size")
+        raise InputError("this moving mesh is flat at t = 0: its scale or size is zero, or 1e-12 of the rest, "
+                         "along an axis (a keyframed scale through zero there, or a size or scale that "
+                         "small). A moving mesh is placed in its t = 0 pose and moved from it, which a flat "
+                         "pose cannot give: move the keyframes, or give it a thickness", path=scene.path,
+                         field=field)
 
 
 def bsdf_dict(mi, obj: dict, scene: Scene) -> dict:
@@ -362,7 +381,7 @@ def build_dict(mi, scene: Scene, *, spp: int = 4, for_meter: dict | None = None)
         od = {"to_world": to_transform(mi, mo.matrix(0.0) @ sm), "bsdf": bsdf_dict(mi, obj, scene)}
         if shp == "mesh":
             f = scene.file(obj["file"], f"{where}file")
-            check_mesh(f)
+            check_mesh(f, f"{where}file")
             od["type"] = f.suffix.lower().lstrip(".")
             od["filename"] = str(f)
         else:

@@ -305,31 +305,41 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
         lock.release()
 
 
-def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash: str, old_variant: str | None,
+def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash: str, old_variant,
                   old_launch: str, manifest: dict, state: dict) -> str:
-    """What to do about a folder whose frames' hash (``old_hash``) is not this run's: a sentence per cause that
-    is known to explain it, each said only where it does (the folder's hash recomputed with the cause undone)."""
-    def same_with(**kw) -> bool:
-        d = settings_of(scene, kw.get("variant", variant), kw.get("launch", launch))
-        if kw.get("no_mesh_normals") and d.pop("mesh_normals", None) is None:
-            return False  # (no moving mesh whose normals the film launch carries: not the cause)
-        return scene.content_hash(d) == old_hash
+    """What to do about a folder whose frames' hash (``old_hash``) is not this run's: a command is suggested
+    only where it would resume the folder (the folder's hash recomputed with that variant and launch), the
+    fewest switches first; and the film launch's change of 2026-11-26 (:data:`FILM_MESH_NORMALS`) is named
+    where the hash without it (with this run's variant or the folder's) is the folder's."""
+    def h(v: str, lnch: str, no_mesh_normals: bool = False):
+        try:
+            d = settings_of(scene, v, lnch)
+        except (AttributeError, TypeError, ValueError):  # (a variant that is no name)
+            return None
+        if no_mesh_normals and d.pop("mesh_normals", None) is None:
+            return None  # (no moving mesh whose normals the film launch carries: not the cause)
+        return scene.content_hash(d)
 
+    from . import backend as _backend
+    known = set()
+    with contextlib.suppress(Exception):
+        known = set(_backend.mitsuba().variants())
+    old_v = old_variant if isinstance(old_variant, str) and old_variant in known else None
+    old_l = old_launch if old_launch in ("film", "frozen") else None
+    tries = []  # (switches, variant, launch): the commands that would resume it, fewest switches first
+    if old_v and old_v != variant:
+        tries.append((f"--variant {old_v}", old_v, launch))
+    if old_l and old_l != launch and asked != "auto":  # (auto would have taken the folder's launch)
+        tries.append((f"--launch {old_l}", variant, old_l))
+    if old_v and old_v != variant and old_l and old_l != launch:
+        tries.append((f"--variant {old_v} --launch {old_l}", old_v, old_l))
     hint = ""
-    other_family = bool(old_variant) and backend.variant_family(old_variant) != backend.variant_family(variant)
-    other_launch = (old_launch != launch and asked != "auto"  # (auto would have taken the folder's launch)
-                    and old_launch in ("film", "frozen") and same_with(variant=old_variant or variant,
-                                                                       launch=old_launch))
-    if other_family and other_launch:
-        hint = (f" It was rendered with Mitsuba '{old_variant}' and the {old_launch} launch, and this run uses "
-                f"'{variant}' and the {launch} launch: pass --variant {old_variant} --launch {old_launch} to "
-                "resume it.")
-    elif other_family:
-        hint = (f" It was rendered with Mitsuba '{old_variant}' and this run uses '{variant}': pass "
-                f"--variant {old_variant} to resume it.")
-    elif other_launch:
-        hint = (f" It was rendered with the {old_launch} launch and this run uses the {launch} launch: "
-                f"pass --launch {old_launch} to resume it.")
+    for switches, v, lnch in tries:
+        if h(v, lnch) == old_hash:
+            what = " and ".join(x for x in (f"Mitsuba '{v}'" if v != variant else "",
+                                            f"the {lnch} launch" if lnch != launch else "") if x)
+            hint = f" It was rendered with {what}: pass {switches} to resume it."
+            break
     old_est = manifest.get("launch_estimator")
     if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION:
         was = f"estimator {old_est}" if old_est is not None else "an estimator before 3, unrecorded"
@@ -337,12 +347,13 @@ def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash:
                  f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
                  "renders them again.")
     old_normals = manifest.get("mesh_normals", state.get("mesh_normals"))
-    if (old_launch == "film" and old_normals != FILM_MESH_NORMALS
-            and same_with(variant=old_variant or variant, launch="film", no_mesh_normals=True)):
-        hint += (" Its frames were made by the film launch before it carried its moving meshes' normals "
-                 "along (2026-11-26; Mitsuba had recomputed them, which turned a mesh with a negative scale "
-                 "inside out and lost a mesh file's own normals), and are not resumed: --overwrite renders "
-                 "them again.")
+    if old_launch == "film" and old_normals != FILM_MESH_NORMALS:
+        on = next((v for v in (variant, old_v) if v and h(v, "film", no_mesh_normals=True) == old_hash), None)
+        if on:
+            hint += (f" Its frames were made{'' if on == variant else f' with Mitsuba {on!r}'} by the film launch "
+                     "before it carried its moving meshes' normals along (2026-11-26; Mitsuba had recomputed "
+                     "them, which turned a mesh with a negative scale inside out and lost a mesh file's own "
+                     "normals), and are not resumed: --overwrite renders them again.")
     return hint
 
 

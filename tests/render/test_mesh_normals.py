@@ -211,6 +211,16 @@ def test_a_refusal_names_every_cause_that_explains_it_in_one_command(tmp_path, w
     assert "pass --launch film to resume it" in h and "--variant" not in h
     # a hash that neither explains (another scene): no advice to switch
     assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, cpu, "film", {}, {})
+    assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, gpu, "film", {}, {})
+    # a film folder from before the normals fix, made on another variant: switching the variant would not resume
+    # it, so no command is suggested; the sentence names the variant it was made with
+    old = settings_of(sc, gpu, "film")
+    old.pop("mesh_normals")
+    h = _refusal_hint(sc, cpu, "film", "film", sc.content_hash(old), gpu, "film", {}, {})
+    assert "resume it" not in h and f"made with Mitsuba '{gpu}' by the film launch before it carried" in h
+    # a manifest's variant that is no variant name (a damaged file): no exception, no advice to pass it
+    for bad in (42, ["x"], "foo", None):
+        assert "--variant" not in _refusal_hint(sc, cpu, "film", "film", both, bad, "film", {}, {})
 
 
 def test_the_scalar_variant_moves_meshes_and_their_normals(tmp_path):
@@ -275,7 +285,8 @@ def test_which_mesh_files_bring_their_own_normals(tmp_path):
     # vn lines with faces that give no normal index: Mitsuba 3.9 leaves those normals undefined (garbage that
     # changes from load to load): refused, naming the file
     for name, faces in (("m.obj", "f 1 2 3\n"), ("n.obj", "f 1/1 2/1 3/1\n"), ("o.obj", "f 1/1/ 2/1/ 3/1/\n"),
-                        ("p.obj", "f 1//1 2//1 3//1\nf 1 2 3\n")):
+                        ("p.obj", "f 1//1 2//1 3//1\nf 1 2 3\n"), ("q.obj", "f 1//0 2//0 3//0\n"),
+                        ("r.obj", "f 1 2//1 3//1\n")):
         (tmp_path / name).write_text(tri + "vn 0 0 1\n" + faces)
         with pytest.raises(InputError, match="without a normal index") as err:
             mesh_file_has_normals(tmp_path / name)
@@ -305,7 +316,7 @@ def test_a_moving_mesh_flat_at_t0_is_refused(tmp_path, write_scene):
                                     {"time_s": 0.005, "scale": [-1.0, 1.0, 1.0]}]}}
     sc = load_scene(write_scene({"objects": [BACK, obj], "reference": REF}))
     for call in (lambda: resolve_launch("auto", "llvm_ad_spectral", sc), lambda: SceneRenderer(sc, launch="film")):
-        with pytest.raises(InputError, match="zero scale along an axis at t = 0") as err:
+        with pytest.raises(InputError, match="flat at t = 0") as err:
             call()
         assert "objects.1.motion" in str(err.value)
 
@@ -325,6 +336,11 @@ def test_the_normals_rule_agrees_with_mitsubas_loaders(tmp_path):
         "tabs.obj": "\n".join(f"v {v}" for v in tet_v) + "\r\nvt 0 0\r\n  vn\t0 0 1\r\n"
                     + "".join(f"\tf\t{a}/1/1 {b}/1/1 {c}/1/1\r\n" for a, b, c in tet_f),
         "plain.obj": "\n".join(f"v {v}" for v in tet_v) + "\n" + "".join(f"f {a} {b} {c}\n" for a, b, c in tet_f),
+        # a corner without a normal index takes the one before it on its face line (Mitsuba 3.9 keeps it)
+        "carried.obj": "\n".join(f"v {v}" for v in tet_v) + "\nvn 0 0 1\n"
+                       + "".join(f"f {a}//1 {b} {c}\n" for a, b, c in tet_f),
+        # "vn" with no blank after it is no normal line to Mitsuba
+        "bare_vn.obj": "\n".join(f"v {v}" for v in tet_v) + "\nvn\n" + "".join(f"f {a} {b} {c}\n" for a, b, c in tet_f),
     }
     for name, text in objs.items():
         (tmp_path / name).write_text(text)
@@ -336,9 +352,11 @@ def test_the_normals_rule_agrees_with_mitsubas_loaders(tmp_path):
         body = [f"{v} {rows}".strip() for v in tet_v] + [f"3 {a - 1} {b - 1} {c - 1}" for a, b, c in tet_f]
         (tmp_path / name).write_text("\n".join(head + body) + "\n")
     ply("n.ply", ["nx", "ny", "nz"], "0 0 1")
+    text = (tmp_path / "n.ply").read_text().replace("format ascii 1.0\n", "format ascii 1.0\ncomment no end_header here\n")
+    (tmp_path / "comment.ply").write_text(text)
     ply("nx_only.ply", ["nx"], "1")
     ply("plain.ply", [], "")
-    for name in (*objs, "n.ply", "nx_only.ply", "plain.ply"):
+    for name in (*objs, "n.ply", "comment.ply", "nx_only.ply", "plain.ply"):
         s = mi.load_dict({"type": "scene", "m": {"type": name.split(".")[1], "filename": str(tmp_path / name)}})
         p = mi.traverse(s)
         loaded = np.array(p["m.vertex_normals"])
@@ -347,3 +365,53 @@ def test_the_normals_rule_agrees_with_mitsubas_loaders(tmp_path):
         p.update()
         kept = not np.allclose(loaded, np.array(p["m.vertex_normals"]), atol=1e-4)
         assert mesh_file_has_normals(tmp_path / name) == kept, name
+
+
+def test_the_normals_rule_sees_a_mesh_file_changed_in_place(tmp_path):
+    # the answer is cached per file, keyed by its inode, size and times: a rewrite of the same size whose
+    # modification time is put back (as cp -p, rsync or tar do) still changes its status time
+    import os
+    import time
+
+    from render2spike.render.builder import mesh_file_has_normals
+    from sensor.errors import InputError
+    f = tmp_path / "m.obj"
+    good = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\n"
+    bad = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1 2//1 3//1\n"
+    bad += " " * (len(good) - len(bad))
+    f.write_text(good)
+    st = f.stat()
+    assert mesh_file_has_normals(f)
+    time.sleep(0.05)
+    f.write_text(bad)
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert f.stat().st_size == st.st_size and f.stat().st_mtime_ns == st.st_mtime_ns
+    with pytest.raises(InputError, match="without a normal index"):
+        mesh_file_has_normals(f)
+
+
+def test_a_refused_obj_names_the_scene_field_still_or_moving(tmp_path, write_scene):
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 0.01 0 0\nv 0 0.01 0\nvn 0 0 1\nf 1 2 3\n")
+    obj = {"name": "thing", "shape": "mesh", "file": "bad.obj", "material": ONE_SIDED}
+    for o in (obj, {**obj, "motion": SLOW}):
+        with pytest.raises(InputError, match="without a normal index") as err:
+            SceneRenderer(load_scene(write_scene({"objects": [BACK, o], "reference": REF})), launch="film")
+        assert err.value.field == "objects.1.file"
+
+
+def test_a_moving_mesh_flat_only_by_its_size_or_scale_is_refused_naming_it(write_scene):
+    # the threshold: a thickness of 1e-13 of the rest is flat (refused, naming the scale); 1e-6 is a thin plate
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    base = {"name": "thing", "shape": "cube", "size": [0.06, 0.06, 0.06], "material": ONE_SIDED, "motion": SLOW}
+    with pytest.raises(InputError, match="flat at t = 0") as err:
+        SceneRenderer(load_scene(write_scene({"objects": [BACK, {**base, "scale": [1.0, 1.0, 1e-13]}],
+                                              "reference": REF})), launch="film")
+    assert err.value.field == "objects.1.scale"
+    r = SceneRenderer(load_scene(write_scene({"objects": [BACK, {**base, "scale": [1.0, 1.0, 1e-6]}],
+                                              "reference": REF}, name="thin.yaml")), launch="film")
+    assert "thing" in r._moving
