@@ -128,7 +128,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     from sensor.spikefile import write_spikes
 
     from .render.frozen import check_launch
-    from .render.job import launch_taken, render_scene
+    from .render.job import _refusal_hint, launch_taken, render_scene
     from .render.scene import load_scene
 
     out = Path(out)
@@ -156,16 +156,12 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         now = {"scene_hash": h, "model": model, "seed": seed, "profile": sc.profile.name}
         diff = [k for k in now if old.get(k) != now[k]]
         if diff:
-            hint = ""
-            was = old.get("variant")
-            if was and backend.variant_family(was) != backend.variant_family(used):
-                hint = f"; it was rendered with Mitsuba '{was}', this run uses '{used}': pass --variant {was} to resume it"
-            if "scene_hash" in diff and was_launch != taken and launch != "auto":
-                hint += (f"; it was rendered with the {was_launch} launch, this run uses the {taken} launch: "
-                         f"pass --launch {was_launch} to resume it")
+            # (the render's own advice: a --variant or --launch only where it would resume the frames)
+            hint = _refusal_hint(sc, used, taken, launch, old.get("scene_hash"), old.get("variant"), was_launch,
+                                 fm, {}) if "scene_hash" in diff else ""
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)
-                             + "); pass --overwrite to replace it, or choose another --out" + hint, path=out)
+                             + "); pass --overwrite to replace it, or choose another --out." + hint, path=out)
     created = not out.exists()
     try:
         res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, variant=variant, log=log,

@@ -12,6 +12,7 @@ Shapes and their local geometry (before the object's pose T R S):
 from __future__ import annotations
 
 import functools
+import re
 
 import numpy as np
 
@@ -102,10 +103,15 @@ def _obj_keyword(line: bytes, word: bytes) -> bytes | None:
     return line[n + 1:] if line[:n] == word and line[n:n + 1] in (b" ", b"\t") else None
 
 
+_OBJ_CORNER_SEP = re.compile(rb"[ \t\r\0]+")
+
+
 def _obj_normals(fh) -> tuple[bool, int, int]:
     """(has ``vn`` lines, face corners with a normal, face corners without one) of an OBJ, read as Mitsuba
-    3.9's loader reads it: a corner's normal is its third index (``v//n``, ``v/t/n``; 0 is none), and a
-    corner without one takes the last one given before it on the same face line."""
+    3.9's loader (``obj.cpp``) reads a face line: one index triple (vertex, texture, normal) for the whole
+    line, each number in a corner overwriting its slot (``/`` moves to the next slot), a corner ending at a
+    blank, tab, carriage return or NUL and taking the triple as it then is. A normal index of 0 (or none
+    given yet on the line) is no normal. Lines of fewer than three corners make no triangle: not counted."""
     has_vn, with_n, without_n = False, 0, 0
     for line in fh:
         if _obj_keyword(line, b"vn") is not None:
@@ -114,17 +120,21 @@ def _obj_normals(fh) -> tuple[bool, int, int]:
         rest = _obj_keyword(line, b"f")
         if rest is None:
             continue
-        given = False
-        for corner in rest.replace(b"\t", b" ").split(b" "):
-            corner = corner.strip(b"\r\n")
+        key = [0, 0, 0]
+        normals = []
+        for corner in _OBJ_CORNER_SEP.split(rest.rstrip(b"\n")):
             if not corner:
                 continue
-            parts = corner.split(b"/")
-            given = given or (len(parts) >= 3 and parts[2].strip() not in (b"", b"0"))
-            if given:
-                with_n += 1
-            else:
-                without_n += 1
+            for slot, part in enumerate(corner.split(b"/")[:3]):
+                if part.strip():
+                    try:
+                        key[slot] = int(part)
+                    except ValueError:
+                        key[slot] = 0
+            normals.append(key[2])
+        if len(normals) >= 3:
+            with_n += sum(1 for n in normals if n != 0)
+            without_n += sum(1 for n in normals if n == 0)
     return has_vn, with_n, without_n
 
 
@@ -150,8 +160,8 @@ def mesh_file_has_normals(path, field: str | None = None) -> bool:
     or an OBJ with ``vn`` lines (scanned line by line; cached per file and its inode, size and times).
 
     Raises :class:`~sensor.errors.InputError` (naming ``field``, the scene file's field) for a file it cannot
-    read, and for an OBJ with ``vn`` lines and a face without any normal index, whose normals Mitsuba 3.9
-    leaves undefined (it computes normals only for an OBJ without any ``vn`` line)."""
+    read, and for an OBJ with ``vn`` lines and any face corner left without a normal (:func:`_obj_normals`),
+    whose normal Mitsuba 3.9 leaves undefined (it computes normals only for an OBJ without any ``vn`` line)."""
     from pathlib import Path
     path = Path(path)
     try:
@@ -210,8 +220,14 @@ def _check_start_pose(scene: Scene, obj: dict, motion: Motion, where: str) -> No
     with np.errstate(all="ignore"):
         c = np.linalg.cond((motion.matrix(0.0) @ shape_matrix(obj))[:3, :3])
     if not (np.isfinite(c) and c < 1e12):
-        keyed = any("scale" in k for k in (obj.get("motion") or {}).get("keyframes", []))
-        field = f"{where}motion" if keyed else (f"{where}scale" if "scale" in obj else f"{where}size")
+        def flat(m):
+            with np.errstate(all="ignore"):
+                k = np.linalg.cond(np.asarray(m)[:3, :3])
+            return not (np.isfinite(k) and k < 1e12)
+        # the field to change: the size (the shape matrix), else the base pose's scale, else the motion
+        field = (f"{where}size" if flat(shape_matrix(obj)) else
+                 f"{where}scale" if flat(Pose.from_spec(obj, where=where).matrix() @ shape_matrix(obj)) else
+                 f"{where}motion")
         raise InputError("this moving mesh is flat at t = 0: its scale or size is zero, or 1e-12 of the rest, "
                          "along an axis (a keyframed scale through zero there, or a size or scale that "
                          "small). A moving mesh is placed in its t = 0 pose and moved from it, which a flat "

@@ -320,11 +320,7 @@ def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash:
             return None  # (no moving mesh whose normals the film launch carries: not the cause)
         return scene.content_hash(d)
 
-    from . import backend as _backend
-    known = set()
-    with contextlib.suppress(Exception):
-        known = set(_backend.mitsuba().variants())
-    old_v = old_variant if isinstance(old_variant, str) and old_variant in known else None
+    old_v = old_variant if isinstance(old_variant, str) else None  # (a name no variant has matches no hash)
     old_l = old_launch if old_launch in ("film", "frozen") else None
     tries = []  # (switches, variant, launch): the commands that would resume it, fewest switches first
     if old_v and old_v != variant:
@@ -338,10 +334,15 @@ def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash:
         if h(v, lnch) == old_hash:
             what = " and ".join(x for x in (f"Mitsuba '{v}'" if v != variant else "",
                                             f"the {lnch} launch" if lnch != launch else "") if x)
-            hint = f" It was rendered with {what}: pass {switches} to resume it."
+            where = ""
+            if v != variant and v not in (backend.GPU_VARIANT, backend.PREFERRED_VARIANT, backend.FALLBACK_VARIANT):
+                where = f" (a variant the CLI does not offer: set RENDER2SPIKE_VARIANT={v} instead of --variant)"
+            elif v != variant and backend.variant_family(v) == "cuda":
+                where = " on a machine with a CUDA GPU"
+            hint = f" It was rendered with {what}: pass {switches} to resume it{where}."
             break
-    old_est = manifest.get("launch_estimator")
-    if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION:
+    old_est = manifest.get("launch_estimator", state.get("launch_estimator"))
+    if old_launch == launch == "frozen" and old_est != _frozen.ESTIMATOR_VERSION and not hint:
         was = f"estimator {old_est}" if old_est is not None else "an estimator before 3, unrecorded"
         hint += (f" If nothing else changed, its frames were made by an earlier version of the frozen "
                  f"launch ({was}; now {_frozen.ESTIMATOR_VERSION}), which is not resumed: --overwrite "
@@ -398,7 +399,9 @@ def _render_locked(scene: Scene, out: Path, overwrite: bool, progress: bool, var
         state = None
     if state is None:
         state = {"format_version": 2, "scene_hash": scene_hash, "scene": str(scene.path), "variant": variant,
-                 "launch": launch, **_film_mesh_normals(launch), "frames": {}, "complete": False}
+                 "launch": launch, **_film_mesh_normals(launch),
+                 **({"launch_estimator": _frozen.ESTIMATOR_VERSION} if launch == "frozen" else {}),
+                 "frames": {}, "complete": False}
     # keep only frames whose files exist
     state["frames"] = {k: v for k, v in state["frames"].items() if (out / v["file"]).is_file()}
     n_resumed = len(state["frames"])

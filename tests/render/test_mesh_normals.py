@@ -221,6 +221,11 @@ def test_a_refusal_names_every_cause_that_explains_it_in_one_command(tmp_path, w
     # a manifest's variant that is no variant name (a damaged file): no exception, no advice to pass it
     for bad in (42, ["x"], "foo", None):
         assert "--variant" not in _refusal_hint(sc, cpu, "film", "film", both, bad, "film", {}, {})
+    # a CUDA variant is advised for a machine with a GPU; one the CLI does not offer through the environment
+    assert "on a machine with a CUDA GPU" in _refusal_hint(sc, cpu, "film", "film", both, gpu, "film", {}, {})
+    pol = "llvm_ad_spectral_polarized"
+    h = _refusal_hint(sc, cpu, "film", "film", sc.content_hash(settings_of(sc, pol, "film")), pol, "film", {}, {})
+    assert f"RENDER2SPIKE_VARIANT={pol}" in h
 
 
 def test_the_scalar_variant_moves_meshes_and_their_normals(tmp_path):
@@ -286,11 +291,19 @@ def test_which_mesh_files_bring_their_own_normals(tmp_path):
     # changes from load to load): refused, naming the file
     for name, faces in (("m.obj", "f 1 2 3\n"), ("n.obj", "f 1/1 2/1 3/1\n"), ("o.obj", "f 1/1/ 2/1/ 3/1/\n"),
                         ("p.obj", "f 1//1 2//1 3//1\nf 1 2 3\n"), ("q.obj", "f 1//0 2//0 3//0\n"),
-                        ("r.obj", "f 1 2//1 3//1\n")):
-        (tmp_path / name).write_text(tri + "vn 0 0 1\n" + faces)
+                        ("r.obj", "f 1 2//1 3//1\n"),
+                        # an explicit 0 (in any spelling) overwrites the normal carried along the line
+                        ("s.obj", "f 1//1 2//0 3\n"), ("t.obj", "f 1//1 2//1 3//0\n"),
+                        ("u.obj", "f 1//00 2//00 3//00\n"),
+                        # a carriage return ends a corner, as a blank does
+                        ("w.obj", "f 1\r2//1 3//1\n")):
+        (tmp_path / name).write_bytes((tri + "vn 0 0 1\n" + faces).encode())
         with pytest.raises(InputError, match="without a normal index") as err:
             mesh_file_has_normals(tmp_path / name)
         assert name in str(err.value)
+    # a line of two corners makes no triangle: its missing normal is never used (Mitsuba builds nothing of it)
+    (tmp_path / "x.obj").write_text(tri + "vn 0 0 1\nf 1//1 2//1 3//1\nf 2 3\n")
+    assert mesh_file_has_normals(tmp_path / "x.obj")
     with pytest.raises(InputError, match="cannot read the mesh file"):
         mesh_file_has_normals(tmp_path / "missing.ply")
 
@@ -415,3 +428,23 @@ def test_a_moving_mesh_flat_only_by_its_size_or_scale_is_refused_naming_it(write
     r = SceneRenderer(load_scene(write_scene({"objects": [BACK, {**base, "scale": [1.0, 1.0, 1e-6]}],
                                               "reference": REF}, name="thin.yaml")), launch="film")
     assert "thing" in r._moving
+    # flat by its size, though its keyframes scale it: the size is named
+    keyed = {**base, "size": [0.06, 0.06, 1e-15], "motion": {"keyframes": [
+        {"time_s": 0.0, "scale": [1.0, 1.0, 1.0]}, {"time_s": 0.01, "scale": [1.0, 1.0, 2.0]}]}}
+    with pytest.raises(InputError, match="flat at t = 0") as err:
+        SceneRenderer(load_scene(write_scene({"objects": [BACK, keyed], "reference": REF}, name="size.yaml")),
+                      launch="film")
+    assert err.value.field == "objects.1.size"
+
+
+def test_the_hash_of_a_scene_with_a_refused_obj_names_its_field(tmp_path, write_scene):
+    # (settings_of reads the mesh file through builder.carries_normals: its refusal names the object's field too)
+    from render2spike.render.job import settings_of
+    from render2spike.render.scene import load_scene
+    from sensor.errors import InputError
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 0.01 0 0\nv 0 0.01 0\nvn 0 0 1\nf 1 2 3\n")
+    sc = load_scene(write_scene({"objects": [BACK, {"name": "thing", "shape": "mesh", "file": "bad.obj",
+                                                    "material": ONE_SIDED, "motion": SLOW}], "reference": REF}))
+    with pytest.raises(InputError, match="without a normal index") as err:
+        settings_of(sc, "llvm_ad_spectral", "film")
+    assert err.value.field == "objects.1.file"
