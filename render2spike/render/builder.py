@@ -215,15 +215,14 @@ def check_mesh(path, field: str | None = None) -> int:
 def _check_start_pose(scene: Scene, obj: dict, motion: Motion, where: str) -> None:
     """Refuse a moving mesh whose pose at t = 0 is flat (a scale keyframed through zero there): both launches
     place a moving mesh in its t = 0 pose and move it from there, which needs that pose's inverse."""
+    def flat(m):  # a condition number of 1e12 or more: an axis 1e-12 of the rest, or none
+        with np.errstate(all="ignore"):
+            k = np.linalg.cond(np.asarray(m)[:3, :3])
+        return not (np.isfinite(k) and k < 1e12)
+
     if motion.is_static:
         return
-    with np.errstate(all="ignore"):
-        c = np.linalg.cond((motion.matrix(0.0) @ shape_matrix(obj))[:3, :3])
-    if not (np.isfinite(c) and c < 1e12):
-        def flat(m):
-            with np.errstate(all="ignore"):
-                k = np.linalg.cond(np.asarray(m)[:3, :3])
-            return not (np.isfinite(k) and k < 1e12)
+    if flat(motion.matrix(0.0) @ shape_matrix(obj)):
         # the field to change: the size (the shape matrix), else the base pose's scale, else the motion
         field = (f"{where}size" if flat(shape_matrix(obj)) else
                  f"{where}scale" if flat(Pose.from_spec(obj, where=where).matrix() @ shape_matrix(obj)) else

@@ -320,6 +320,8 @@ def _refusal_hint(scene: Scene, variant: str, launch: str, asked: str, old_hash:
             return None  # (no moving mesh whose normals the film launch carries: not the cause)
         return scene.content_hash(d)
 
+    if not isinstance(old_hash, str) or not old_hash:  # (a summary without a hash: nothing to match against)
+        return ""
     old_v = old_variant if isinstance(old_variant, str) else None  # (a name no variant has matches no hash)
     old_l = old_launch if old_launch in ("film", "frozen") else None
     tries = []  # (switches, variant, launch): the commands that would resume it, fewest switches first

@@ -212,6 +212,12 @@ def test_a_refusal_names_every_cause_that_explains_it_in_one_command(tmp_path, w
     # a hash that neither explains (another scene): no advice to switch
     assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, cpu, "film", {}, {})
     assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, gpu, "film", {}, {})
+    # a run's summary without a hash (render2spike run): no hash to match, so no advice and no normals sentence
+    still = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", None), "reference": REF},
+                                   name="still.yaml"))  # (no carried normals: their hash check gives None)
+    for scene in (sc, still):
+        for missing in (None, ""):
+            assert _refusal_hint(scene, cpu, "film", "film", missing, 42, "film", {}, {}) == ""
     # a film folder from before the normals fix, made on another variant: switching the variant would not resume
     # it, so no command is suggested; the sentence names the variant it was made with
     old = settings_of(sc, gpu, "film")
