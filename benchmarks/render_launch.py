@@ -11,11 +11,18 @@ Per frame (medians over ``--frames`` frames, after ``--warm`` frames), in ms:
 
 * ``update_ms``: ``set_time`` (the scene's parameters at this time, and for a moving scene the rebuild
   of its ray-tracing acceleration structure: on CUDA an OptiX build, whose device work is not in the
-  kernel history below);
-* ``call_ms``: the render call until it returns (Mitsuba tracing the integrator into Dr.Jit's IR, and
-  the film's evaluation, which assembles and launches the kernel: Mitsuba evaluates the film inside
-  ``render``, as the kernel history shows, even with ``evaluate=False``);
-* ``sync_ms``: ``np.asarray`` on the film (waiting for the kernel, copying the film to the host);
+  kernel history below), split into ``pose_ms`` (this project's part: the motion matrices at this time
+  and the writes of the moving objects' parameters) and ``params_update_ms`` (Mitsuba's
+  ``SceneParameters.update``: the changed objects' ``parameters_changed``, which for a moving shape
+  rebuilds the scene's acceleration structure);
+* ``call_ms``: the render call until it returns. With ``--launch film`` (the default): Mitsuba tracing
+  the integrator into Dr.Jit's IR, and the film's evaluation, which assembles and launches the kernel
+  (Mitsuba evaluates the film inside ``render``, as the kernel history shows, even with
+  ``evaluate=False``). With ``--launch frozen``: the recorded function's call (Dr.Jit walking its inputs,
+  the scene among them, and replaying its kernels; the frames of its first sample count record it and
+  are among the ``--warm`` ones);
+* ``sync_ms``: waiting for the kernels and copying the result to the host (``np.asarray`` on the film;
+  the frozen launch's ``channels``);
 * from Dr.Jit's kernel history for the same frame: ``codegen_ms`` (assembling the kernel source and
   hashing it, host), ``backend_ms`` (compiling, ~0 on a cache hit) and ``exec_ms`` (the run time of
   the JIT kernels as the backend measured it: on CUDA the device time; on LLVM the worker threads',
@@ -55,17 +62,20 @@ def _load_avg():
 
 
 #: the per-frame columns, in the table's order
-KEYS = ("wall_ms", "update_ms", "call_ms", "sync_ms", "trace_ms", "codegen_ms", "backend_ms", "exec_ms",
+KEYS = ("wall_ms", "update_ms", "pose_ms", "params_update_ms", "call_ms", "sync_ms", "trace_ms", "codegen_ms", "backend_ms", "exec_ms",
         "other_kernels_ms")
 
 
-def frame_row(t0: float, t1: float, t2: float, t3: float, hist: list[dict], jit) -> dict:
+def frame_row(t0: float, t1: float, t2: float, t3: float, hist: list[dict], jit, params_update_s: float = 0.0) -> dict:
     """One frame's split (ms) from its four clock readings [s] (before ``set_time``, after it, after the render
-    call, after ``np.asarray``) and the kernel history entries it made (``jit``: the history's JIT kernel
-    type; the other entries count as other kernels)."""
+    call, after the result is on the host), the kernel history entries it made (``jit``: the history's JIT
+    kernel type; the other entries count as other kernels) and the seconds ``set_time`` spent in Mitsuba's
+    ``SceneParameters.update`` (``params_update_s``; the rest of ``set_time`` is ``pose_ms``)."""
     k = [h for h in hist if h.get("type") == jit]
     o = [h for h in hist if h.get("type") != jit]
-    row = {"wall_ms": 1e3 * (t3 - t0), "update_ms": 1e3 * (t1 - t0), "call_ms": 1e3 * (t2 - t1),
+    row = {"wall_ms": 1e3 * (t3 - t0), "update_ms": 1e3 * (t1 - t0),
+           "pose_ms": 1e3 * (t1 - t0 - params_update_s), "params_update_ms": 1e3 * params_update_s,
+           "call_ms": 1e3 * (t2 - t1),
            "sync_ms": 1e3 * (t3 - t2),
            "codegen_ms": sum(float(h.get("codegen_time", 0.0)) for h in k),
            "backend_ms": sum(float(h.get("backend_time", 0.0)) for h in k),
@@ -84,38 +94,61 @@ def summarize(rows: list[dict], warm: int) -> dict:
     return {k: float(np.median([r[k] for r in timed])) for k in timed[0]}
 
 
-def _renderer(scene: str, sets: list[str], n: int):
+def _renderer(scene: str, sets: list[str], n: int, launch: str = "film"):
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
     rate = float(load_scene(scene, list(sets)).render["keyframe_rate_hz"])
-    import inspect  # the film launch (what this splits up), where the code has a choice (the default is auto)
-    film = {"launch": "film"} if "launch" in inspect.signature(SceneRenderer).parameters else {}
-    rnd = SceneRenderer(load_scene(scene, list(sets), duration_s=(n - 1) / rate), **film)
+    import inspect  # the launch asked for, where the code has a choice (older code had the film launch only)
+    kw = {"launch": launch} if "launch" in inspect.signature(SceneRenderer).parameters else {}
+    if launch != "film" and not kw:
+        raise SystemExit(f"--launch {launch}: this version of render2spike has the film launch only")
+    rnd = SceneRenderer(load_scene(scene, list(sets), duration_s=(n - 1) / rate), **kw)
     return rnd, [i / rate for i in range(n)]
 
 
-def measure(scene: str, spp: int, frames: int, warm: int, sets: list[str]) -> dict:
+class _TimedUpdate:
+    """``SceneParameters.update`` of one renderer, timed: ``seconds`` is the time of the last call."""
+
+    def __init__(self, params):
+        self._update = params.update
+        self.seconds = 0.0
+
+    def __call__(self, *a, **k):
+        t = time.perf_counter()
+        try:
+            return self._update(*a, **k)
+        finally:
+            self.seconds = time.perf_counter() - t
+
+
+def measure(scene: str, spp: int, frames: int, warm: int, sets: list[str], launch: str = "film") -> dict:
     """One row: per-frame medians of the launch split (ms) for the variant this process renders with."""
     import drjit as dr
-    rnd, times = _renderer(scene, sets, warm + frames)
+    rnd, times = _renderer(scene, sets, warm + frames, launch)
+    frozen = getattr(rnd, "_frozen", None)
+    timed = _TimedUpdate(rnd.params)
+    rnd.params.update = timed  # this renderer's only: set_time calls it once per moving frame
     was = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     rows = []
     try:
         dr.kernel_history()  # read = cleared
         for i, t_s in enumerate(times):
+            timed.seconds = 0.0  # a static scene's set_time calls nothing
             t0 = time.perf_counter()
             rnd.set_time(t_s)
             t1 = time.perf_counter()
             img = rnd._render_call(1000 + i, spp)
             t2 = time.perf_counter()
-            np.asarray(img)
+            frozen.channels(img) if frozen is not None else np.asarray(img)
             t3 = time.perf_counter()
-            rows.append(frame_row(t0, t1, t2, t3, dr.kernel_history(), dr.KernelType.JIT))
+            rows.append(frame_row(t0, t1, t2, t3, dr.kernel_history(), dr.KernelType.JIT, timed.seconds))
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, was)
+        del rnd.params.update
     med = summarize(rows, warm)
     return {"scene": scene, "resolution": f"{rnd.height}x{rnd.width}", "spp": spp, "variant": rnd.variant,
+            "launch": "frozen" if frozen is not None else "film", "moving": len(getattr(rnd, "_moving", {})),
             "frames": frames, "warm": warm, "median": med,
             "samples_per_s": rnd.height * rnd.width * spp / (med["wall_ms"] / 1e3)}
 
@@ -183,8 +216,8 @@ def write_md(out: Path, rows: list[dict]) -> Path:
     lines = ["# Where one render launch's time goes", "",
              "Medians per frame in ms (`benchmarks/render_launch.py`; columns in its docstring; '-': not "
              "measured by the version of the script that made the row).", "",
-             "| date | machine | load before/after | variant | scene | size | spp | " + " | ".join(KEYS) +
-             " | kernels | samples/s | freeze |", "|" + "---|" * (len(KEYS) + 10)]
+             "| date | machine | load before/after | variant | launch | scene | size | spp | " + " | ".join(KEYS) +
+             " | kernels | samples/s | freeze |", "|" + "---|" * (len(KEYS) + 11)]
     for r in rows:
         m = r["median"]
         fz = r.get("freeze")
@@ -197,7 +230,8 @@ def write_md(out: Path, rows: list[dict]) -> Path:
         else:
             fzs = f"fails: {fz['error'][:160]}"
         load = " / ".join(", ".join(f"{x:.2f}" for x in r[k]) for k in ("load_before", "load_after"))
-        lines.append(f"| {r['date']} | {r['machine']} | {load} | {r['variant']} | {r['scene']} | {r['resolution']} | "
+        lines.append(f"| {r['date']} | {r['machine']} | {load} | {r['variant']} | {r.get('launch', 'film')} | "
+                     f"{r['scene']} | {r['resolution']} | "
                      f"{r['spp']} | " + " | ".join(_fmt(m.get(k)) for k in KEYS) +
                      f" | {m['kernels']:.0f} | {r['samples_per_s']:.3g} | {fzs} |")
     return write_text_atomic(out / "render_launch.md", "\n".join(lines) + "\n")
@@ -231,7 +265,11 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, nargs="+", default=[16], help="samples per pixel (default 16)")
     ap.add_argument("--frames", type=int, default=40, help="timed frames (default 40)")
     ap.add_argument("--warm", type=int, default=5, help="untimed frames first (default 5)")
-    ap.add_argument("--freeze", action="store_true", help="also try drjit.freeze on the render call (in a child)")
+    ap.add_argument("--launch", choices=("film", "frozen"), default="film",
+                    help="the launch split up: the integrator's render into the film (default), or the frozen "
+                         "launch (render2spike.render.frozen) that the renderer takes by default on LLVM and CUDA")
+    ap.add_argument("--freeze", action="store_true", help="also try drjit.freeze on the film launch's render call "
+                    "(in a child; with --launch film only)")
     ap.add_argument("--freeze-timeout-s", type=float, default=60.0, help="kill the freeze trial after this long")
     ap.add_argument("--out", default=str(HERE / "results" / "render_launch"))
     ap.add_argument("--report-only", action="store_true", help="rewrite render_launch.md from the json in --out")
@@ -242,6 +280,9 @@ def main(argv=None):
             ap.error(f"--report-only reads {js}, which does not exist (a render_launch.json written by an earlier run)")
         print(f"wrote {write_md(Path(a.out), _read_rows(js, ap))}")
         return 0
+    if a.freeze and a.launch != "film":
+        ap.error("--freeze tries drjit.freeze on the film launch's render call; the frozen launch is one already "
+                 "(drop --freeze, or use --launch film)")
     if a.frames < 1 or a.warm < 1 or min(a.spp) < 1:
         ap.error(f"--frames, --warm and every --spp must be >= 1 (got {a.frames}, {a.warm}, {a.spp})")
     if Path(a.scene).is_file():
@@ -261,15 +302,16 @@ def main(argv=None):
     command = "python benchmarks/render_launch.py " + " ".join(argv)
     for spp in a.spp:
         lb = _load_avg()
-        r = measure(a.scene, spp, a.frames, a.warm, sets)
+        r = measure(a.scene, spp, a.frames, a.warm, sets, a.launch)
         r.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), machine=mline, load_before=lb,
                  load_after=_load_avg(), command=command)
         rows.append(r)
         write_json_atomic(js, rows)  # before the freeze trial: what was measured is kept whatever it does
         write_md(out, rows)
         m = r["median"]
-        print(f"{r['variant']} {r['scene']} {r['resolution']} spp {spp}: wall {m['wall_ms']:.2f} ms = update "
-              f"{m['update_ms']:.2f} + call {m['call_ms']:.2f} (trace {m['trace_ms']:.2f} + codegen "
+        print(f"{r['variant']} {r['launch']} {r['scene']} {r['resolution']} spp {spp}: wall {m['wall_ms']:.2f} ms "
+              f"= update {m['update_ms']:.2f} (pose {m['pose_ms']:.3f} + Mitsuba's update {m['params_update_ms']:.2f})"
+              f" + call {m['call_ms']:.2f} (trace {m['trace_ms']:.2f} + codegen "
               f"{m['codegen_ms']:.2f} + backend {m['backend_ms']:.2f}) + sync {m['sync_ms']:.2f}; JIT kernels ran "
               f"{m['exec_ms']:.2f}, others {m['other_kernels_ms']:.2f}; load {r['load_before']}", flush=True)
         if a.freeze:

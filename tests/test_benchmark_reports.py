@@ -133,6 +133,10 @@ def test_launch_frame_row_and_medians():
     assert r["exec_ms"] == pytest.approx(0.6) and r["other_kernels_ms"] == pytest.approx(0.05)
     assert r["trace_ms"] == pytest.approx(8.0 - 0.4 - 5.0)  # the render call less kernel assembly and compile
     assert r["kernels"] == 2 and r["cache_misses"] == 1
+    assert r["params_update_ms"] == 0.0 and r["pose_ms"] == pytest.approx(1.0)  # a static scene: no update
+    r = mod.frame_row(10.0, 10.001, 10.009, 10.012, hist, JIT, params_update_s=0.0007)  # set_time: 0.3 + 0.7 ms
+    assert r["params_update_ms"] == pytest.approx(0.7) and r["pose_ms"] == pytest.approx(0.3)
+    assert r["update_ms"] == pytest.approx(1.0)
     rows = [{"wall_ms": 100.0}, {"wall_ms": 90.0}, {"wall_ms": 3.0}, {"wall_ms": 5.0}, {"wall_ms": 4.0}]
     assert mod.summarize(rows, 2) == {"wall_ms": 4.0}  # the two warm-up frames are not in the median
     with pytest.raises(ValueError, match="no timed frames"):
@@ -146,7 +150,7 @@ def test_launch_table_has_every_row_column_and_freeze_outcome(tmp_path):
             "load_after": [1.5, 2.0, 3.0], "variant": "cuda_ad_spectral", "scene": "s", "resolution": "32x48",
             "spp": 16, "median": dict(med, kernels=2), "samples_per_s": 1e7}
     old = dict(base, median={k: v for k, v in base["median"].items() if k not in ("update_ms", "other_kernels_ms")})
-    rows = [dict(base), dict(base, freeze={"works": False, "error": "RuntimeError: VarType mismatch"}),
+    rows = [dict(base), dict(base, launch="frozen", freeze={"works": False, "error": "RuntimeError: VarType mismatch"}),
             dict(base, spp=256, freeze={"works": True, "wall_ms_median": 0.5, "films_equal_unfrozen": 9,
                                         "frames": 10, "max_rel_diff_vs_unfrozen": 3e-7}), old]
     text = mod.write_md(tmp_path, rows).read_text()
@@ -159,7 +163,9 @@ def test_launch_table_has_every_row_column_and_freeze_outcome(tmp_path):
         assert cells[head.index(k)] == f"{1.0 + i:.3f}"
     assert cells[head.index("load before/after")] == "1.00, 2.00, 3.00 / 1.50, 2.00, 3.00"
     assert cells[head.index("freeze")] == "-"
+    assert cells[head.index("launch")] == "film"  # rows without a launch were the film launch's
     assert "fails: RuntimeError: VarType mismatch" in table[3]
+    assert [c.strip() for c in table[3].strip("|").split("|")][head.index("launch")] == "frozen"
     assert "works: 0.50 ms, 9/10 films equal, max rel. diff. 3e-07" in table[4]
     old_cells = [c.strip() for c in table[5].strip("|").split("|")]
     assert old_cells[head.index("update_ms")] == "-" and old_cells[head.index("wall_ms")] == "1.000"

@@ -84,6 +84,27 @@ def _buffer_like(params, key: str, values: np.ndarray):
     return type(params[key])(np.ascontiguousarray(values, dtype=np.float32).ravel())
 
 
+def _written_keys(moving: dict) -> list[str]:
+    """The Mitsuba scene parameters :meth:`SceneRenderer.set_time` writes for the motions ``moving``
+    (``{key: (kind, parameter, motion, shape matrix, local)}``): each moving object's ``to_world`` or vertex
+    positions, and the vertex normals it carries; none for the frozen launch's camera."""
+    keys = []
+    for key, (kind, pkey, *_, local) in moving.items():
+        if kind == "camera":
+            continue
+        keys.append(pkey)
+        if kind == "vertices" and local[1] is not None:
+            keys.append(f"{key}.vertex_normals")
+    return keys
+
+
+def _exact_keys(keys: list[str]) -> list[str]:
+    """Patterns that ``SceneParameters.keep`` (which matches regular expressions) reads as exactly ``keys``:
+    object names from a scene file may hold '.', '+' or other characters a pattern treats specially."""
+    import re
+    return [re.escape(k) + r"\Z" for k in keys]
+
+
 def _mesh_local_frame(params, key: str, m0: np.ndarray, carry: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """(vertices, normals) of the loaded mesh ``key`` in its own frame, undone from ``m0``, its 4 x 4 pose at
     t = 0 (motion times shape matrix), with which the builder placed it. ``normals`` is None unless ``carry``
@@ -200,6 +221,12 @@ class SceneRenderer:
                                  "vertex_positions for it", path=scene.path, field=f"objects.{key}.motion")
         if launch == "frozen":
             _check_frozen_motion(self._moving)
+            if SENSOR_KEY in self._moving:  # the frozen launch traces its own primary rays from the camera's pose
+                # (self._cam_m, an input of its recording); Mitsuba's camera is never rendered, and its to_world
+                # stays as loaded: a camera-only motion updates nothing in Mitsuba's scene
+                self._moving[SENSOR_KEY] = ("camera", None) + self._moving[SENSOR_KEY][2:]
+        # the scene parameters set_time writes, and only those: Mitsuba's update then walks just these
+        self.params.keep(_exact_keys(_written_keys(self._moving)))
         cam = scene.camera
         prof = scene.profile
         self.height, self.width = prof.height, prof.width
@@ -229,14 +256,21 @@ class SceneRenderer:
         A call at the time already set does nothing: the poses would be the same, and the update
         would make Mitsuba rebuild its ray-tracing structure and wait for the kernels in flight
         (the frame and its verification launch, or the launches of an spp taken in parts, share a time).
+        With the frozen launch the camera's pose is an input of the launch only (Mitsuba's camera is never
+        rendered there): a scene in which only the camera moves updates nothing in Mitsuba (on the 2-core
+        CPU that saved 0.5-0.6 ms a frame of ``room_pan``; ``benchmarks/render_launch.py``).
         """
         if not self._moving or t_s == self._t_set:
             return
         mi = self.mi
+        written = False
         for key, (kind, pkey, motion, shape_m, local) in self._moving.items():
             m = motion.matrix(t_s) @ shape_m
             if key == SENSOR_KEY:
                 self._cam_m = m
+            if kind == "camera":  # the frozen launch's camera: its pose is an input of the launch, not of Mitsuba
+                continue
+            written = True
             if kind == "instance":  # from the mesh's pose at t = 0 to the one at t_s (frozen.relative_motion)
                 self.params[pkey] = to_transform(mi, m @ local)
             elif kind == "to_world":
@@ -251,7 +285,8 @@ class SceneRenderer:
                     # (the scalar variants skip a parameter set to equal values, and would then recompute
                     # the normals for the moved positions: under a translation the carried ones are equal)
                     self.params.set_dirty(nkey)
-        self.params.update()
+        if written:
+            self.params.update()
         self._t_set = t_s
 
     # ----------------------------------------------------------- rendering

@@ -200,3 +200,45 @@ def test_render_job_reuses_the_pilot_render_for_its_first_verification_only_with
     # the first frame carries a measured ratio either way
     from sensor.frames import read_frame
     assert np.isfinite(read_frame(tmp_path / "out" / ratios[0]["file"]).header["render_noise_ratio"])
+
+
+#: moving objects whose names share a prefix with each other and with a static one, whose name an unescaped pattern
+#: of the first one's parameter ("thing.to_world") would match
+PREFIXED = [
+    {"name": "back", "shape": "rectangle", "size": [10, 10], "position": [0, 0, -0.5], "material": {"reflectance": 0.3}},
+    {"name": "thing", "shape": "cube", "size": [0.02, 0.02, 0.02], "position": [0, 0, 0], "material": {"reflectance": 0.8},
+     "motion": {"parametric": [{"translate": {"velocity_m_s": [0.25, 0.1, 0.0]}}]}},
+    {"name": "thing2", "shape": "rectangle", "size": [0.02, 0.02], "position": [0.03, 0, 0],
+     "material": {"reflectance": 0.6}, "motion": {"parametric": [{"translate": {"velocity_m_s": [0.0, 0.2, 0.0]}}]}},
+    {"name": "thing_to_world", "shape": "cube", "size": [0.02, 0.02, 0.02], "position": [-0.03, 0, 0],
+     "material": {"reflectance": 0.5}},
+]
+
+
+@needs_mitsuba
+@pytest.mark.parametrize("launch", ["film", "frozen"])
+def test_set_time_keeps_and_writes_exactly_the_moving_objects_parameters(write_scene, launch):
+    # Mitsuba's update walks every parameter the renderer holds: it holds exactly those set_time writes (names that
+    # share a prefix, or that a regular expression would read otherwise, kept or dropped by their whole name)
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    sc = load_scene(write_scene({"objects": PREFIXED, "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}}))
+    r = SceneRenderer(sc, launch=launch)
+    want = {"thing.vertex_positions", "thing.vertex_normals", "thing2.to_world"} if launch == "film" else \
+        {"thing.to_world", "thing2.to_world"}  # the frozen launch moves the cube as an instance
+    assert set(r.params.keys()) == want
+    def value(k):  # a transform's matrix or a buffer, as float64 numbers
+        v = r.params[k]
+        return np.array(v.matrix if hasattr(v, "matrix") else v, dtype=np.float64).ravel()
+    before = {k: value(k) for k in want if k.endswith(("positions", "to_world"))}
+    r.set_time(0.008)
+    for k, v in before.items():  # the new poses reached the kept parameters (a translation keeps the normals)
+        assert not np.array_equal(value(k), v), k
+    # each moving object is where its motion puts it: the frame at 0.008 s is the frame of a fresh renderer at that time
+    a = r.render_frame(0.008, 5, 16, variance=False)["phi"]
+    del r
+    import gc
+    gc.collect()
+    fresh = SceneRenderer(sc, launch=launch)
+    b = fresh.render_frame(0.008, 5, 16, variance=False)["phi"]
+    np.testing.assert_array_equal(a, b)

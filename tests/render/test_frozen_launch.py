@@ -537,3 +537,32 @@ def test_instancing_keeps_an_object_whose_name_a_group_would_take():
     assert list(done) == ["thing"] and d["thing__group"] == {"type": "sphere"} and d["thing__mesh"] == {"type": "sphere"}
     assert d["thing"]["type"] == "instance" and d["thing"]["shapegroup"]["id"] == "thing__group_2"
     assert list(d["thing__group_2"]) == ["type", "thing__mesh_2"] and d["thing__group_2"]["thing__mesh_2"]["type"] == "cube"
+
+
+def test_a_camera_only_motion_updates_nothing_in_mitsuba_and_moves_the_frame(write_scene):
+    # the frozen launch traces its own primary rays from the camera's pose: Mitsuba's camera is never rendered, so a
+    # scene where only the camera moves leaves Mitsuba's scene as loaded, and the frame still follows the camera
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    from tests.render.conftest import BASE
+    _collect()
+    cam = dict(BASE["camera"], motion={"parametric": [{"translate": {"velocity_m_s": [0.5, 0.0, 0.0]}}]})
+    objects = [MOVING[0], {k: v for k, v in MOVING[1].items() if k != "motion"}]
+    r = SceneRenderer(load_scene(write_scene({"objects": objects, "camera": cam,
+                                              "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}})),
+                      launch="frozen")
+    assert r._moving["camera"][0] == "camera" and list(r.params.keys()) == []
+    updates = []
+    r.params.update = lambda *a, **k: updates.append(1)
+    to_world = np.array(r.sensor.world_transform().matrix, dtype=np.float64)
+    frames = {}
+    for t_s in (0.0, 0.01, 0.0):
+        cam_m = r._cam_m.copy()
+        frames.setdefault(t_s, []).append(r.render_frame(t_s, 7, 16, variance=False)["phi"])
+        if t_s:
+            assert not np.allclose(r._cam_m, cam_m)  # the launch's input moved with the camera
+    assert updates == []
+    np.testing.assert_array_equal(np.array(r.sensor.world_transform().matrix, dtype=np.float64), to_world)
+    np.testing.assert_array_equal(frames[0.0][0], frames[0.0][1])  # back at t = 0: the same frame, bit for bit
+    # at 0.01 s the camera is 5 mm to the side (0.5 m/s): the cube's image moved with it, another frame
+    assert not np.allclose(frames[0.0][0], frames[0.01][0])
