@@ -126,6 +126,10 @@ def measure(scene: str, spp: int, frames: int, warm: int, sets: list[str], launc
     import drjit as dr
     rnd, times = _renderer(scene, sets, warm + frames, launch)
     frozen = getattr(rnd, "_frozen", None)
+    if frozen is not None and len(rnd.launch_counts(spp)) > 1:  # this times one render call, the renderer's one launch
+        raise SystemExit(f"--spp {spp}: the frozen launch takes it in {len(rnd.launch_counts(spp))} launches at "
+                         f"{rnd.height} x {rnd.width} (render2spike.render.frozen.MAX_SAMPLES_PER_LAUNCH); this "
+                         "script times one launch: ask for fewer samples per pixel")
     timed = _TimedUpdate(rnd.params)
     rnd.params.update = timed  # this renderer's only: set_time calls it once per moving frame
     was = dr.flag(dr.JitFlag.KernelHistory)

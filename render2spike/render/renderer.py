@@ -6,7 +6,8 @@ for each time ``t_s``:
 
 1. sets every moving object's ``to_world`` (for meshes in the film launch, their vertex
    positions and normals; in the frozen launch, their instance's transform) and the
-   camera's ``to_world`` from :mod:`.motion`;
+   camera's pose from :mod:`.motion` (its ``to_world`` in the film launch; in the frozen launch an
+   input of the launch only, Mitsuba's camera being never rendered there);
 2. renders the two-channel spectral film with exactly the asked samples per
    pixel (seeds derived from the base seed and the frame time), in one launch
    when the sampler takes that count exactly; optionally a second, independent
@@ -99,8 +100,9 @@ def _written_keys(moving: dict) -> list[str]:
 
 
 def _exact_keys(keys: list[str]) -> list[str]:
-    """Patterns that ``SceneParameters.keep`` (which matches regular expressions) reads as exactly ``keys``:
-    object names from a scene file may hold '.', '+' or other characters a pattern treats specially."""
+    """Patterns that ``SceneParameters.keep`` (which matches regular expressions from a key's start) reads as
+    exactly ``keys``: the '.' between an object's name and its parameter would match any character, so that
+    ``thing.to_world`` read as a pattern also matches the parameters of an object named ``thing_to_world``."""
     import re
     return [re.escape(k) + r"\Z" for k in keys]
 
@@ -225,7 +227,10 @@ class SceneRenderer:
                 # (self._cam_m, an input of its recording); Mitsuba's camera is never rendered, and its to_world
                 # stays as loaded: a camera-only motion updates nothing in Mitsuba's scene
                 self._moving[SENSOR_KEY] = ("camera", None) + self._moving[SENSOR_KEY][2:]
-        # the scene parameters set_time writes, and only those: Mitsuba's update then walks just these
+        # the scene parameters set_time writes, and only those: Mitsuba's update then walks just these. Reading a
+        # parameter makes Mitsuba check it at the next update (the loaded normals read above, also where they are
+        # not carried): an update first settles those reads, so that no key dropped here is looked for later
+        self.params.update()
         self.params.keep(_exact_keys(_written_keys(self._moving)))
         cam = scene.camera
         prof = scene.profile

@@ -242,3 +242,20 @@ def test_set_time_keeps_and_writes_exactly_the_moving_objects_parameters(write_s
     fresh = SceneRenderer(sc, launch=launch)
     b = fresh.render_frame(0.008, 5, 16, variance=False)["phi"]
     np.testing.assert_array_equal(a, b)
+
+
+@needs_mitsuba
+def test_a_parameter_read_at_load_but_not_written_is_dropped_safely(write_scene, monkeypatch):
+    # Mitsuba checks every parameter read since its last update at the next one: a mesh whose loaded normals were
+    # read but are not carried (their key dropped from the kept parameters) must not make set_time look for them
+    from render2spike.render import renderer as rmod
+    orig = rmod._mesh_local_frame
+
+    def read_normals_carry_none(params, key, m0, carry):
+        params[f"{key}.vertex_normals"]  # read, as when a mesh's normals do not fit its vertices
+        return orig(params, key, m0, False)
+    monkeypatch.setattr(rmod, "_mesh_local_frame", read_normals_carry_none)
+    r = _renderer(write_scene, MOVING)
+    assert set(r.params.keys()) == {"thing.vertex_positions"}
+    r.set_time(0.004)  # no KeyError for the dropped normals
+    assert np.isfinite(r.render_frame(0.004, 1, 16, variance=False)["phi"]).all()
