@@ -10,11 +10,14 @@
 #   5. with FROZEN_T=seconds (0 or unset: skipped), benchmarks/render_frozen.py, the film launch against the
 #      frozen launch (render2spike/render/frozen.py, the default launch) on the auto-selected variant, at
 #      three points, or those FROZEN_ARGS gives (its tests run in step 2, as part of tests/render).
+#   6. with LAUNCH_T=seconds (0 or unset: skipped), benchmarks/render_launch.py --launch frozen on each bundled scene's
+#      window at 16 spp (LAUNCH_SCENES overrides the scenes): a frame's scene update (this project's pose vs Mitsuba's
+#      update, an OptiX rebuild where an object moves), the frozen call and the wait, on the auto-selected variant.
 # REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
 # the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: auto
 # only, the README's command as it stands; its log is demo.txt, another launch's demo_LAUNCH.txt).
 # Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
-#        [DEMO_LAUNCHES="film frozen"] \
+#        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -82,6 +85,17 @@ timeout "$FROZEN_T" python3 benchmarks/render_frozen.py --rounds 1 --frames 16 -
   > "$OUT/frozen.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "frozen launch benchmark exit $rc"
+}
+[ "${LAUNCH_T:-0}" -gt 0 ] && {
+stamp "launch split, frozen launch (benchmarks/render_launch.py, timeout ${LAUNCH_T} s)"
+lt0=$(date +%s)
+for sc in ${LAUNCH_SCENES:-lambertian_plane rotating_disk room_pan translating_object}; do
+  left=$(( LAUNCH_T - ($(date +%s) - lt0) ))
+  [ "$left" -gt 5 ] || { stamp "launch split: no time left for $sc"; break; }
+  timeout "$left" python3 benchmarks/render_launch.py --launch frozen --scene "$sc" --spp 16 --frames 60 --warm 8 \
+    --out "$OUT/launch" >> "$OUT/launch.txt" 2>&1 || { fail=1; stamp "launch split of $sc failed"; }
+done
+stamp "launch split done"
 }
 [ -n "${REPRO_SPP:-}" ] && {
 stamp "two runs of the same render (benchmarks/repro_check.py, spp ${REPRO_SPP}, default launch)"
