@@ -299,8 +299,12 @@ class FrozenLaunch:
             raise InputError(f"{self.height} x {self.width} pixels at {spp} spp is {self.height * self.width * spp:,} "
                              "samples in one launch, 2^32 or more: the frozen launch cannot take it; use fewer "
                              "samples per pixel or --launch film (which renders in passes)", field="spp")
-        m = mi.Transform4f(np.asarray(cam_to_world, np.float64).tolist())
-        self.dr.make_opaque(m)  # inputs, not constants of the recording: one recording serves every pose and seed
+        # the pose as one buffer of 16 float32 (row by row), an input of the recording (not a constant of it): one
+        # recording serves every pose and seed. One copy to the device, where a Transform4f made opaque was 32
+        # one-value memsets a launch (its matrix and inverse transpose). Made from a list, in memory of Dr.Jit's own:
+        # made from a NumPy array, the buffer was at times another input layout to drjit.freeze, which then recorded
+        # the launch again (in 5 of 40 processes of a 13-launch run, against none in 80 from a list; 2026-11-26)
+        m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
         if self.frozen and spp not in self._seen_spp:  # a new count is recorded: scenes with the spectral film
             import gc  # that are garbage not yet collected (e.g. a light meter's, in a reference cycle) would
             gc.collect()  # break the recording
@@ -342,7 +346,7 @@ class FrozenLaunch:
         pos = mi.Vector2f(mi.Float(px), mi.Float(py)) + sampler.next_2d()  # Mitsuba's order: position first
         u = sampler.next_1d()  # ... then the wavelength
         lam, inv_p = self.wavelengths(u, quantiles)
-        o, d, maxt = self.primary_rays(m, mi.Vector2f(pos.x * (1.0 / w), pos.y * (1.0 / h)))
+        o, d, maxt = self.primary_rays(self.pose(m), mi.Vector2f(pos.x * (1.0 / w), pos.y * (1.0 / h)))
         ray = mi.Ray3f(o, d, maxt, 0.0, mi.UnpolarizedSpectrum(*lam))
         L, _, _ = self._integrator.sample(scene, sampler, mi.RayDifferential3f(ray), None, True)
         accs = []
@@ -355,6 +359,12 @@ class FrozenLaunch:
         return [dr.block_reduce(dr.ReduceOp.Add, a, spp, mode="evaluated") for a in accs]
 
     # --------------------------------------------------------- its parts (also tested on their own)
+    def pose(self, buf):
+        """The camera's ``Transform4f`` from its 4 x 4 matrix held row by row in ``buf`` (``mi.Float`` of 16)."""
+        mi, dr = self.mi, self.dr
+        v = [dr.gather(mi.Float, buf, mi.UInt32(i)) for i in range(16)]
+        return mi.Transform4f(mi.Matrix4f(*v))
+
     def primary_rays(self, m, film_pos):
         """Rays of the pinhole camera at pose ``m`` through film positions ``film_pos`` in [0, 1]^2.
 

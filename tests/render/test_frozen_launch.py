@@ -566,3 +566,43 @@ def test_a_camera_only_motion_updates_nothing_in_mitsuba_and_moves_the_frame(wri
     np.testing.assert_array_equal(frames[0.0][0], frames[0.0][1])  # back at t = 0: the same frame, bit for bit
     # at 0.01 s the camera is 5 mm to the side (0.5 m/s): the cube's image moved with it, another frame
     assert not np.allclose(frames[0.0][0], frames[0.01][0])
+
+
+def test_a_launch_hands_the_camera_pose_over_in_one_buffer_and_replays(write_scene):
+    # A pose given as an opaque Transform4f was 32 one-value memsets a launch (its matrix and inverse transpose),
+    # each an operation of its own on a GPU; one buffer of 16 float32 is one copy (4 memsets a launch in all on
+    # Mitsuba 3.9.1 / Dr.Jit 1.5.0: the seed and Dr.Jit's own). The buffer is a layout drjit.freeze sees the same at
+    # every launch: made from a NumPy array it was not always, and the launch was recorded again (in 5 of 40
+    # processes of a 13-launch run): here 40 launches at new poses and seeds after the warm-up replay only
+    import drjit as dr
+    from render2spike.render.renderer import SceneRenderer
+    _collect()
+    r = SceneRenderer(_scene(write_scene), launch="frozen")
+    fl = r._frozen
+    for k in range(6):  # recorded (once, or a few times at first), then replayed
+        r.set_time(0.001 * k)
+        fl.channels(fl.launch(100 + k, 16, r._cam_m))
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        r.set_time(0.0065)  # (Mitsuba's update of the moved cube makes memsets of its own: not the launch's)
+        dr.kernel_history()  # read = cleared
+        fl.channels(fl.launch(5, 16, r._cam_m))
+        hist = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    memsets = sum(h.get("type") == dr.KernelType.Memset for h in hist)
+    assert memsets < 16, (memsets, [str(h.get("type")) for h in hist])
+    n = fl.n_recordings
+    for k in range(40):
+        r.set_time(0.0002 * k + 0.00005)
+        fl.channels(fl.launch(1000 + k, 16, r._cam_m))
+    assert fl.n_recordings == n, (fl.n_recordings, n)
+    # and the buffer, 16 float32 row by row, is the pose: the rays of the Transform4f made from the same matrix, bit
+    # for bit (that one is held against Mitsuba's camera in test_primary_rays_are_mitsubas_perspective_camera)
+    mi = r.mi
+    pos = mi.Vector2f(*np.random.default_rng(4).random((2, 101)))
+    got = fl.primary_rays(fl.pose(mi.Float([float(x) for x in np.asarray(r._cam_m, np.float32).ravel()])), pos)
+    want = fl.primary_rays(mi.Transform4f(r._cam_m.tolist()), pos)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
