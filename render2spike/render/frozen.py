@@ -360,9 +360,14 @@ class FrozenLaunch:
 
     # --------------------------------------------------------- its parts (also tested on their own)
     def pose(self, buf):
-        """The camera's ``Transform4f`` from its 4 x 4 matrix held row by row in ``buf`` (``mi.Float`` of 16)."""
+        """The camera's ``Transform4f`` from its 4 x 4 matrix held row by row in ``buf`` (``mi.Float`` of 16).
+
+        The 16 values are taken out of the buffer once, by a kernel of one lane, so that the render's kernel
+        reads each as one value, as it read the opaque ``Transform4f`` this replaced; gathered inside the
+        render's kernel they were 12 vector gathers in every packet of samples (the kernel's IR, in review)."""
         mi, dr = self.mi, self.dr
         v = [dr.gather(mi.Float, buf, mi.UInt32(i)) for i in range(16)]
+        dr.eval(*v)
         return mi.Transform4f(mi.Matrix4f(*v))
 
     def primary_rays(self, m, film_pos):

@@ -573,7 +573,8 @@ def test_a_launch_hands_the_camera_pose_over_in_one_buffer_and_replays(write_sce
     # each an operation of its own on a GPU; one buffer of 16 float32 is one copy (4 memsets a launch in all on
     # Mitsuba 3.9.1 / Dr.Jit 1.5.0: the seed and Dr.Jit's own). The buffer is a layout drjit.freeze sees the same at
     # every launch: made from a NumPy array it was not always, and the launch was recorded again (in 5 of 40
-    # processes of a 13-launch run): here 40 launches at new poses and seeds after the warm-up replay only
+    # processes of a 13-launch run): here 40 launches at new poses and seeds after the warm-up replay only (a guard,
+    # not a proof: it caught the NumPy version in 1 of 12 runs)
     import drjit as dr
     from render2spike.render.renderer import SceneRenderer
     _collect()
