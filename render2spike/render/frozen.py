@@ -303,7 +303,7 @@ class FrozenLaunch:
         # recording serves every pose and seed. One copy to the device, where a Transform4f made opaque was 32
         # one-value memsets a launch (its matrix and inverse transpose). Made from a list, in memory of Dr.Jit's own:
         # made from a NumPy array, the buffer was at times another input layout to drjit.freeze, which then recorded
-        # the launch again (in 5 of 40 processes of a 13-launch run, against none in 80 from a list; 2026-11-26)
+        # the launch again (in 5 of 40 processes of a 13-launch run, against none in 120 from a list; 2026-11-26)
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
         if self.frozen and spp not in self._seen_spp:  # a new count is recorded: scenes with the spectral film
             import gc  # that are garbage not yet collected (e.g. a light meter's, in a reference cycle) would

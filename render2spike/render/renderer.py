@@ -263,8 +263,8 @@ class SceneRenderer:
         (the frame and its verification launch, or the launches of an spp taken in parts, share a time).
         With the frozen launch the camera's pose is an input of the launch only (Mitsuba's camera is never
         rendered there): a scene in which only the camera moves updates nothing in Mitsuba (on the 2-core
-        CPU ``room_pan``'s scene update went from 0.71-0.79 to 0.15 ms a frame; ``benchmarks/render_launch.py``,
-        ``docs/performance.md``, seventh round).
+        CPU ``room_pan``'s scene update went from 0.71-0.79 to 0.15 ms a frame at load 0.5-1.1;
+        ``benchmarks/render_launch.py``, ``docs/performance.md``, seventh round).
         """
         if not self._moving or t_s == self._t_set:
             return
