@@ -60,10 +60,16 @@ class SpikeSimulator:
     def warm_up(self) -> None:
         """Load (or compile) the fast kernels now, not at the first block: numba's JIT cache load
         (~0.3 s once per process) runs here, on a throw-away 8 x 8 window of the profile with the
-        same model and input kind. This stream's state and spikes are untouched."""
+        same model and input kind. Meanwhile a helper thread faults in the memory of the first spike
+        blocks (:meth:`sensor.buffers.RecyclingPool.reserve`). This stream's state and spikes are
+        untouched."""
         if self.implementation != "fast":
             return
         h, w = min(8, self.profile.height), min(8, self.profile.width)
+        # the spike blocks' memory, faulted in on a helper thread while numba loads (the blocks in flight:
+        # the one being made, and those a background writer has queued and is writing)
+        if getattr(self.model, "uses_segments", False):
+            self._bits.reserve((self.block, self.n_bytes), 3)
         sim = SpikeSimulator(self.profile.window(0, 0, h, w), self.model_name, 0, implementation="fast",
                              per_interval=self.schedule.per_interval)
         rate = np.ones((2, h, w), np.float32)

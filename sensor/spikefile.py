@@ -33,6 +33,7 @@ import contextlib
 import io
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -655,18 +656,26 @@ class SpikeWriter:
         elif shape != self.shape:
             raise SpikeFileError(f"frame shape changed from {self.shape} to {shape}", path=self.path)
         self.n_intervals += bits.shape[0]
-        self.n_spikes += count_bits(bits)
         if self.kind == "dat":
             H, W = shape
             if W % 8 == 0:  # rows re-ordered (bottom-up) straight into the stream's staging buffer (memory
                 n = bits.shape[0]  # reused block after block: no fresh pages to fault in and clear)
+                src = np.ascontiguousarray(bits).reshape(n, H, W // 8)
                 dst = np.frombuffer(self._fh.reserve(bits.size), np.uint8).reshape(n, H, W // 8)
-                np.copyto(dst, bits.reshape(n, H, W // 8)[:, ::-1, :])
+                if "numba" in sys.modules:  # loaded (the fast kernels): re-order and count in one compiled call
+                    from sensor.fastio import flip_rows_counted
+                    self.n_spikes += flip_rows_counted(src, dst)
+                else:  # numpy alone: a writer that does not load numba (~0.6 s) for it
+                    np.copyto(dst, src[:, ::-1, :])
+                    self.n_spikes += count_bits(src)
                 del dst
                 self._fh.commit(bits.size)
             else:
+                self.n_spikes += count_bits(bits)
                 self._fh.write(packed_to_dat(bits, *shape))
-        elif self._zip is not None:
+            return
+        self.n_spikes += count_bits(bits)
+        if self._zip is not None:
             if self._member is None:  # the header says the expected length (checked, and if need be fixed, at close)
                 # zip64 always: the stream may outgrow the announced length past 2 GiB (20 bytes more)
                 self._member = self._zip.open("packed.npy", "w", force_zip64=True)

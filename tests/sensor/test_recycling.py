@@ -29,6 +29,47 @@ def test_pool_recycles_only_arrays_nobody_holds_and_counts_it():
     assert len(pool.arrays) == 2
 
 
+def test_reserved_arrays_are_faulted_in_and_handed_out_only_once_written(monkeypatch):
+    import threading
+    from sensor import buffers
+    gate, started = threading.Event(), threading.Event()
+    real = buffers._fault_in
+
+    def held(arrays):  # the helper, stopped before it writes: it holds every reserved array
+        for a in arrays:
+            a.fill(np.nan)  # so that "zeroed" below is the helper's doing, not the allocator's
+        del a
+        started.set()
+        gate.wait(10)
+        real(arrays)
+
+    monkeypatch.setattr(buffers, "_fault_in", held)
+    pool = RecyclingPool(np.float32, keep=4)
+    th = pool.reserve((2, 3), 2)
+    assert th is not None and len(pool.arrays) == 2 and all(a.shape == (2, 3) for a in pool.arrays)
+    reserved = {a.__array_interface__["data"][0] for a in pool.arrays}  # addresses: no reference held here
+    assert started.wait(10)
+    a = pool.take((2, 3))  # the helper still holds both: a new array, not a reserved one
+    assert pool.recycled == 0 and a.__array_interface__["data"][0] not in reserved
+    gate.set()
+    th.join(10)
+    assert not th.is_alive()
+    b = pool.take((2, 3))  # written and dropped by the helper: recycled, zeros
+    assert pool.recycled == 1 and b.__array_interface__["data"][0] in reserved
+    np.testing.assert_array_equal(b, 0)
+    del a, b
+    assert pool.reserve((2, 3), 0) is None and pool.reserve((0, 3), 2) is None
+    pool._free = None  # where reference counts are deferred nothing is recycled, so nothing is reserved
+    assert pool.reserve((2, 3), 2) is None
+
+
+def test_reserve_never_holds_more_than_keep_arrays():
+    pool = RecyclingPool(np.uint8, keep=3)
+    pool.take((4,))
+    pool.reserve((5,), 9).join(10)
+    assert len(pool.arrays) == 3 and all(a.shape == (5,) for a in pool.arrays)
+
+
 # ------------------------------------------------------------------------------------------ spike blocks
 @pytest.fixture(scope="module")
 def stream():

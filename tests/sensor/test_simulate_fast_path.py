@@ -169,6 +169,45 @@ def test_count_bits_any_shape_and_layout(shape):
         assert count_bits(v) == int(np.unpackbits(np.ascontiguousarray(v)).sum())
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("shape", [(1, 1, 1), (3, 5, 7), (2, 8, 16), (4, 250, 50), (0, 3, 2)])
+def test_flip_rows_counted_is_the_reversed_copy_and_the_bit_count(monkeypatch, shape, compiled):
+    """The .dat writer's fused pass: rows reversed per frame and every set bit counted (the 8-byte words
+    and the tail bytes: sizes here are and are not multiples of 8), compiled and with numpy alone."""
+    from sensor import fastio
+    if compiled and not fastio.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(fastio, "HAVE_NUMBA", compiled)
+    bits = np.random.default_rng(11).integers(0, 256, shape, dtype=np.uint8)
+    dst = np.full(shape, 7, np.uint8)
+    n = fastio.flip_rows_counted(bits, dst)
+    assert n == int(np.unpackbits(bits).sum())
+    np.testing.assert_array_equal(dst, bits[:, ::-1, :])
+    with pytest.raises(ValueError, match="bits must be C-contiguous"):
+        fastio.flip_rows_counted(np.asfortranarray(np.zeros((2, 3, 4), np.uint8)), np.zeros((2, 3, 4), np.uint8))
+    with pytest.raises(ValueError, match="dst must be"):
+        fastio.flip_rows_counted(np.zeros((2, 3, 4), np.uint8), np.zeros((2, 4, 3), np.uint8))
+
+
+@pytest.mark.parametrize("numba_loaded", [True, False])
+@pytest.mark.parametrize("width", [24, 12])
+def test_dat_writer_bytes_and_count_match_the_numpy_layout(tmp_path, monkeypatch, width, numba_loaded):
+    """Blocks written to a .dat are :func:`packed_to_dat`'s bytes, back to back, and every spike is counted:
+    through the staging buffer (W % 8 == 0; the compiled pass when numba is loaded, numpy when not) and
+    the general way (W % 8 != 0)."""
+    from sensor.spikefile import pack_frames, packed_to_dat
+    if not numba_loaded:
+        monkeypatch.delitem(sys.modules, "numba", raising=False)
+    rng = np.random.default_rng(12)
+    blocks = [pack_frames(rng.random((n, 6, width)) < 0.2) for n in (4, 1, 7)]
+    with SpikeWriter(tmp_path / "s.dat", interval_s=50e-6, model="elssim", profile_id="p", seed=1) as w:
+        for b in blocks:
+            w.write_packed(b, (6, width))
+    assert w.n_intervals == 12 and w.n_spikes == sum(int(np.unpackbits(b).sum()) for b in blocks)
+    want = b"".join(packed_to_dat(b, 6, width).tobytes() for b in blocks)
+    assert (tmp_path / "s.dat").read_bytes() == want
+
+
 @pytest.mark.parametrize("suffix", [".dat", ".npz"])
 def test_background_writer_writes_the_same_file(tmp_path, suffix):
     rng = np.random.default_rng(7)
