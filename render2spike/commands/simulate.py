@@ -382,13 +382,10 @@ class RateSource:
             return self._chunks_plain(profile, bounds)
         from collections import Counter, deque
         from concurrent.futures import ThreadPoolExecutor
-        if self.rate is None:  # chunks are arrays of the pool: the memory of those the run will hold at once
-            # (the read-ahead, the one in use and one the simulator keeps: depth + 2) is faulted in now, while
-            # the start-up leaves a core idle, not by the reader beside the running kernel (0.1-0.2 s of CPU
-            # over 4 s of frames on the project's VM). One fewer: the reader takes its first array at once,
-            # a new one, while the helper still holds these
+        if self.rate is None:  # chunks are arrays of the pool: see reserve_count
             rows = Counter(j - i for i, j in bounds).most_common(1)[0][0]
-            self._pool.reserve((rows,) + tuple(self.shape), min(depth + 1, len(bounds) - 1))
+            shape = (rows,) + tuple(self.shape)
+            self._pool.reserve(shape, reserve_count(len(bounds), depth, 4 * int(np.prod(shape, dtype=np.int64))))
         ex = ThreadPoolExecutor(1, thread_name_prefix="r2s-read")
         state = {"prev": None, "end": 0}
         futs = deque(ex.submit(self._read_next, profile, i, j, state) for i, j in bounds[:depth])
@@ -490,6 +487,23 @@ def _run(args, frozen: dict) -> int:
 
 #: largest read of one simulator block's keyframes for block-aligned reads (else fixed-size chunks)
 ALIGNED_MAX_BYTES = 64 << 20
+
+#: most memory of chunk arrays faulted in ahead during the start-up (:func:`reserve_count`)
+RESERVE_MAX_BYTES = 128 << 20
+
+
+def reserve_count(n_chunks: int, depth: int, chunk_bytes: int) -> int:
+    """How many chunk arrays a reader with ``depth`` chunks read ahead has faulted in while the command
+    starts (:meth:`sensor.buffers.RecyclingPool.reserve`), not by the reader beside the running kernel
+    (0.1-0.2 s of CPU over 4 s of frames on the project's VM, where a first touch runs at ~0.4 GB/s).
+
+    The run holds ``depth + 2`` at once (the read-ahead, the one in use, one the simulator keeps); the
+    reader takes its first at once, a new one, while the helper still holds the reserved ones: so
+    ``depth + 1``, and no more than the chunks after the first. Nothing past :data:`RESERVE_MAX_BYTES`
+    in all: a helper that is still writing a large array when the reader needs one makes the reader
+    take a new one beside it (one rate per interval: 400 MB chunks at 400 x 250).
+    """
+    return max(0, min(int(depth) + 1, int(n_chunks) - 1, RESERVE_MAX_BYTES // max(int(chunk_bytes), 1)))
 
 
 def plan_reads(src, sim, chunk: int | None = None, max_bytes: int = 256 << 20):

@@ -5,7 +5,7 @@ import pytest
 
 import sensor
 from render2spike.cli import main
-from render2spike.commands.simulate import RateSource, _NpzMember
+from render2spike.commands.simulate import RESERVE_MAX_BYTES, RateSource, _NpzMember, reserve_count
 from sensor.spikefile import count_bits
 
 
@@ -67,3 +67,15 @@ def test_frames_prefetch_gives_the_same_chunks(tmp_path):
     for (ra, ta, _), (rb, tb, _) in zip(a, b):
         np.testing.assert_array_equal(ra, rb)
         np.testing.assert_array_equal(ta, tb)
+
+
+def test_reserve_count_covers_the_run_but_not_large_chunks():
+    """The reader's arrays faulted in at start-up: the depth + 2 the run holds less the first (taken new at
+    once), never more than the chunks after the first, nothing past RESERVE_MAX_BYTES in all."""
+    mb = 1 << 20
+    assert reserve_count(80, 2, 20 * mb) == 3  # a frames folder at 400 x 250: 51-keyframe chunks
+    assert reserve_count(80, 1, 20 * mb) == 2
+    assert reserve_count(2, 2, 20 * mb) == 1 and reserve_count(1, 2, 20 * mb) == 0
+    assert reserve_count(80, 2, RESERVE_MAX_BYTES // 2) == 2
+    assert reserve_count(80, 1, 400 * mb) == 0  # one rate per interval: 1000-row chunks are not reserved
+    assert reserve_count(80, 2, 0) == 3
