@@ -1,4 +1,4 @@
-"""Fused one-pass array work for streaming readers (numba when available, numpy otherwise).
+"""Fused one-pass array work for streaming readers and writers (numba when available, numpy otherwise).
 
 A reader that feeds the spike kernel must check every value it hands over (finite,
 >= 0) and, for irradiance frames, convert Phi to photoelectrons per interval. Done
@@ -13,7 +13,9 @@ Here each is one pass:
 * :func:`exr_scale_checked` -- the same for a channel sliced out of an uncompressed
   scanline EXR's bytes, after checking the file's offset table and scanline heads
   (:func:`exr_group_scale_checked`: a group of frames in one call);
-* :func:`count_bad` -- the number of non-finite or negative values.
+* :func:`count_bad` -- the number of non-finite or negative values;
+* :func:`flip_rows_counted` -- for the ``.dat`` writer, a block of packed frames
+  copied with its rows in reverse order, and its set bits (spikes) counted.
 
 All release the GIL (numba ``nogil``). Callers raise their own error (naming file,
 field and first bad index, e.g. :func:`sensor.rates.check_rates`) when the count is
