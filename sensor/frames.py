@@ -342,6 +342,8 @@ def _exr_header(data, name: str):
                 break
             tend = _nul(data, end + 1)
             (size,) = struct.unpack_from("<i", data, tend + 1)
+            if size < 0:  # damaged: a negative size would send the walk back over the header, forever
+                return None
             attrs[bytes(data[pos:end])] = (bytes(data[end + 1:tend]), tend + 5, size)
             pos = tend + 5 + size
         if attrs[b"compression"][0] != b"compression" or data[attrs[b"compression"][1]] != 0:

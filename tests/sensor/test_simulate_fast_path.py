@@ -117,6 +117,25 @@ def test_compressed_or_damaged_exr_falls_back_to_openexr(tmp_path):
         read_phi(cut)
 
 
+def test_a_negative_attribute_size_is_refused_not_walked_forever(tmp_path):
+    """A damaged header whose attribute size is negative once sent the header walk back to the same
+    attribute, forever (found by a review, 2026-11-27): the fast reader now leaves the file to OpenEXR,
+    which refuses it, naming it."""
+    import struct
+    write_frame(tmp_path / "a.exr", np.ones((2, 3), np.float32), time_s=0.0, attrs={"aa": 5})
+    d = bytearray((tmp_path / "a.exr").read_bytes())
+    at = d.find(b"aa\0int\0") + 7
+    struct.pack_into("<i", d, at, -(7 + 4))  # back to the start of the same attribute
+    (tmp_path / "b.exr").write_bytes(bytes(d))
+    code = ("import sys; from sensor.frames import _exr_header; "
+            f"print(_exr_header(open({str(tmp_path / 'b.exr')!r}, 'rb').read(), 'Phi'))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT), timeout=30,
+                       env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0 and r.stdout.strip() == "None", r.stderr
+    with pytest.raises(sensor.FrameFileError, match="b.exr"):
+        read_phi(tmp_path / "b.exr")
+
+
 def test_frames_read_phi_checks_like_read(tmp_path):
     _frames(tmp_path / "fr", n=3)
     write_frame(tmp_path / "fr" / "frame_000001.exr", np.full((8, 16), -1.0, np.float32), time_s=1e-3)
