@@ -1,18 +1,19 @@
 """Alternate e2e `render2spike simulate` of several trees and the kernel child, on one frames folder.
-usage: ab2.py FOLDER DUR ROUNDS name=tree,name=tree"""
+usage: ab4.py FOLDER DUR ROUNDS name=tree[%PYTHONPATH-prefix][@folder],...  (the prefix part was added for ab_swi.txt)"""
 import sys, os, json, time, subprocess
 sys.path.insert(0, "/work/main/benchmarks")
 from pathlib import Path
 import run
 src = Path(sys.argv[1]); dur = float(sys.argv[2]); rounds = int(sys.argv[3])
 spec = dict(x.split("=") for x in sys.argv[4].split(","))
-trees = {k: v.split("@")[0] for k, v in spec.items()}
+trees = {k: v.split("@")[0].split("%")[0] for k, v in spec.items()}
+pre = {k: (v.split("@")[0].split("%")[1] + ":") if "%" in v.split("@")[0] else "" for k, v in spec.items()}
 folders = {k: Path(v.split("@")[1]) if "@" in v else src for k, v in spec.items()}
 d = Path("/work/exp/s9/tmp"); d.mkdir(exist_ok=True)
-def cli(tree, src):
+def cli(tree, src, prefix=''):
     cmd = [sys.executable, "-m", "render2spike", "simulate", str(src), "--out", str(d / "o.dat"), "--profile",
            "vidar-default", "--seed", "1", "--quiet"]
-    env = dict(os.environ, PYTHONPATH=tree)
+    env = dict(os.environ, PYTHONPATH=prefix + tree)
     r = subprocess.run([sys.executable, "-c", run._WRAP, *cmd], capture_output=True, text=True, cwd=tree, env=env)
     res = json.loads(r.stdout.strip().splitlines()[-1])
     assert res["rc"] == 0, res["err"]
@@ -23,7 +24,7 @@ for r in range(rounds):
     order = list(trees) if r % 2 == 0 else list(trees)[::-1]
     for v in order:
         os.sync(); run._warm(folders[v])
-        w_, c_ = cli(trees[v], folders[v]); res[v].append(w_); cpu[v].append(c_)
+        w_, c_ = cli(trees[v], folders[v], pre[v]); res[v].append(w_); cpu[v].append(c_)
     os.sync()
     k = run._kernel_child({"profile": "vidar-default", "sink": "disk", "threads": 0, "model": "elssim",
                            "implementation": "fast", "lux": 5.0, "duration_s": dur, "input": "keyframes",
