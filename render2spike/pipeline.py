@@ -38,9 +38,10 @@ def simulate_frames(frames_dir, profile, model: str = "elssim", seed: int = 0, p
         it = range(len(seq))
     for i in it:
         fr = seq.read(i)
-        rate_e = sensor.photoelectron_rate(fr.phi, profile)
-        parts.extend(sim.iter_feed_packed(rate_e[None], np.array([fr.time_s])))
-    parts.append(sim.finish_packed())
+        rate_e = sensor.photoelectron_rate(fr.phi, profile)  # a new array, handed over (owned)
+        # lookahead: the kernel's threads run each block while this thread reads the next frames
+        parts.extend(sim.iter_feed_packed(rate_e[None], np.array([fr.time_s]), owned=True, lookahead=True))
+    parts.extend(sim.iter_finish_packed())
     packed = np.concatenate(parts) if parts else np.zeros((0, sim.n_bytes), np.uint8)
     return PackedSpikes(packed, profile.shape), seq
 

@@ -788,6 +788,57 @@ class _FastModel(SpikeModel):
         state["m"] = seg.m1
         return out
 
+    def submit_segments(self, seg: Segments, state: dict, rng, out: np.ndarray, after=None) -> list:
+        """Start the block ``seg`` on the thread pool and return at once: one future per tile, in tile order.
+
+        What :meth:`run_segments` computes into ``out`` (same spikes, same ``state``), without its barrier:
+        ``after`` (the futures this returned for the previous block) orders each tile after the same tile of
+        the previous block, whose state it continues (a tile's state, random stream and output bytes are its
+        own), so a thread that finishes its last tile of one block starts on the next block at once. The
+        pool runs jobs in the order they were submitted, so a tile waiting for its predecessor waits for a
+        job already running on another thread (never for one still queued; if ``RENDER2SPIKE_THREADS`` changes
+        between two blocks, a new pool is made and may wait for the old one's jobs: slower, never stuck, as each
+        pool only waits for work submitted before). ``state["m"]`` advances now.
+
+        The caller keeps ``seg.rates`` unchanged and ``out`` untouched until every future is done. Call
+        from one thread. Runs the tiles here, one after another, when the pool has one thread (the
+        futures are then done)."""
+        from concurrent.futures import Future
+        if seg.m0 != state["m"]:
+            raise ValueError(f"block starts at interval {seg.m0} but the state is at {state['m']}")
+        if seg.rates.shape[1] != self.n_pixels:
+            raise ValueError(f"segments have {seg.rates.shape[1]} pixels, the profile {self.n_pixels}")
+        shape = (seg.m1 - seg.m0, self.n_bytes)
+        if out.shape != shape or out.dtype != np.uint8 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous uint8 array of shape {shape}; got {out.dtype} {out.shape}")
+        if after is not None and len(after) != len(self.tiles):
+            raise ValueError(f"after must hold one future per tile ({len(self.tiles)}); got {len(after)}")
+        rngs = rng.spawn(len(self.tiles)) if self.uses_rng else [None] * len(self.tiles)
+        futs = []
+        if n_threads() == 1:
+            for t, ((p0, p1), g) in enumerate(zip(self.tiles, rngs)):
+                if after is not None:
+                    after[t].result()
+                f = Future()
+                try:
+                    self._tile_into(seg, state, g, p0, p1, out, True)
+                    f.set_result(None)
+                except BaseException as e:  # noqa: BLE001 - handed to whoever waits, as the pool would
+                    f.set_exception(e)
+                futs.append(f)
+        else:
+            pool = _pool()
+            for t, ((p0, p1), g) in enumerate(zip(self.tiles, rngs)):
+                futs.append(pool.submit(self._tile_after, None if after is None else after[t], seg, state, g, p0,
+                                        p1, out))
+        state["m"] = seg.m1
+        return futs
+
+    def _tile_after(self, prev, seg, state, rng, p0, p1, out):
+        if prev is not None:
+            prev.result()  # the same tile of the previous block (already running: the pool is FIFO)
+        self._tile_into(seg, state, rng, p0, p1, out, True)
+
     def _tile_into(self, seg, state, rng, p0, p1, out, clear: bool):
         """One tile's spikes OR-ed into ``out``, after clearing the tile's bytes when asked (tiles start on
         whole bytes, TILE_PIXELS being a multiple of 8, so no two threads share a byte)."""

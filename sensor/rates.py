@@ -334,7 +334,7 @@ class RateSchedule:
         self._t: np.ndarray = np.zeros(0, np.float64)
         self._chunks: list[np.ndarray] = []  # buffered rows (keyframes, or intervals in per_interval mode)
         self._borrowed: list[bool] = []  # chunk i is a view of a caller's array (add(copy=False))
-        self._scratch: np.ndarray | None = None  # reused buffer for gathers that span chunks
+        self._scratch_pair: list = [None, None]  # reused buffers for gathers that span chunks, in turn
         self._n = 0  # number of buffered rows
         self._shape = None
         self._offset = 0  # per_interval mode: index of the first buffered interval
@@ -416,8 +416,8 @@ class RateSchedule:
     def _gather(self, lo: int, hi: int, scratch: bool = False) -> np.ndarray:
         """Buffered rows [lo, hi) as one array (a view when they lie in one chunk).
 
-        ``scratch=True``: rows spanning chunks are joined in a buffer reused by the next
-        such call (no fresh allocation per block), valid until then.
+        ``scratch=True``: rows spanning chunks are joined in one of two buffers used in turn (no fresh
+        allocation per block), valid until the next call but one.
         """
         parts, pos = [], 0
         for c in self._chunks:
@@ -433,9 +433,13 @@ class RateSchedule:
             return np.concatenate(parts)
         n = hi - lo
         row = parts[0].shape[1:]
-        if self._scratch is None or self._scratch.shape[0] < n or self._scratch.shape[1:] != row:
-            self._scratch = np.empty((max(n, 2 * n if self._scratch is None else n),) + row, np.float32)
-        return np.concatenate(parts, out=self._scratch[:n])
+        # two buffers, used in turn: a block in flight (SpikeSimulator's lookahead) still reads the rows of
+        # the previous call while the next block's are joined
+        self._scratch_pair.reverse()
+        buf = self._scratch_pair[0]
+        if buf is None or buf.shape[0] < n or buf.shape[1:] != row:
+            buf = self._scratch_pair[0] = np.empty((max(n, 2 * n if buf is None else n),) + row, np.float32)
+        return np.concatenate(parts, out=buf[:n])
 
     def _drop_last(self, n: int) -> None:
         """Forget the last ``n`` buffered rows."""
@@ -510,7 +514,7 @@ class RateSchedule:
         """The rate of intervals [m0, m1) as affine :class:`Segments`; drops keyframes no longer needed.
 
         ``Segments.rates`` may be a view of the buffered keyframes or of a scratch buffer:
-        use it before the next call.
+        use it before the next call but one.
         """
         if m1 > self.covered():
             raise InputError(f"intervals up to {m1} requested but keyframes cover only {self.covered()}")

@@ -18,8 +18,8 @@ class SpikeSimulator:
     """Streaming spike simulation with state carried across chunks.
 
     Feed the rate in chunks of any size (:meth:`feed`), then call
-    :meth:`finish`. Memory is bounded by one block of intervals plus the
-    buffered keyframes; the output for a given seed is bitwise identical for
+    :meth:`finish`. Memory is bounded by one block of intervals (two with
+    ``iter_feed_packed(lookahead=True)``) plus the buffered keyframes; the output for a given seed is bitwise identical for
     any chunking.
 
     Parameters
@@ -48,10 +48,20 @@ class SpikeSimulator:
         self.schedule = RateSchedule(self.profile.interval_s, per_interval=per_interval)
         self.state = self.model.init_state()
         self.block = int(self.model.block_intervals)
-        self.n_done = 0  # intervals emitted so far
+        self.n_done = 0  # intervals simulated or started so far (with lookahead, the block in flight included)
         self.finished = False
         # packed spike blocks: a few in flight at once (the caller's, a writer's queue), then recycled
-        self._bits = RecyclingPool(np.uint8, keep=4)
+        self._bits = RecyclingPool(np.uint8, keep=5)
+        # lookahead: the block whose tiles run on the pool while the caller handles the one before
+        # (out, futures), see iter_feed_packed(lookahead=True)
+        self._inflight: tuple | None = None
+        self._failed: BaseException | None = None  # why a block started ahead was lost (the stream is then over)
+
+    @property
+    def looks_ahead(self) -> bool:
+        """Whether ``iter_feed_packed(lookahead=True)`` starts blocks ahead with this model (the fast
+        implementations) rather than running each one as it is asked for."""
+        return hasattr(self.model, "submit_segments")
 
     @property
     def interval_s(self) -> float:
@@ -97,11 +107,51 @@ class SpikeSimulator:
         out = self.model.run_block(self.schedule.rates(m0, m1), self.state, rng)
         return pack_frames(out) if packed else out
 
+    def _submit(self, m0: int, m1: int) -> None:
+        """Start block [m0, m1) on the pool behind the one in flight (:meth:`_FastModel.submit_segments`)."""
+        rng = block_generator(self.seed, self.model_name, m0 // self.block, self.implementation)
+        out = self._bits.take((m1 - m0, self.n_bytes))
+        after = self._inflight[1] if self._inflight is not None else None
+        futs = self.model.submit_segments(self.schedule.segments(m0, m1), self.state, rng, out, after=after)
+        self._inflight = (out, futs)
+
+    def _collect(self, inflight) -> np.ndarray:
+        """The spikes of a block started by :meth:`_submit`, once its tiles are done."""
+        out, futs = inflight
+        try:
+            for f in futs:
+                f.result()
+        except BaseException as e:
+            self._failed = e  # the block is lost and the state is past it: nothing after it can be right
+            raise
+        return out
+
+    def _check_usable(self) -> None:
+        if self._failed is not None:
+            raise RuntimeError(f"a block of this stream failed earlier ({type(self._failed).__name__}: "
+                               f"{self._failed}); its spikes are lost, so the stream cannot go on: start a new "
+                               "SpikeSimulator") from self._failed
+
+    def _drain(self) -> Iterator[np.ndarray]:
+        """The block still in flight, if any (lookahead)."""
+        if self._inflight is not None:
+            inflight, self._inflight = self._inflight, None
+            yield self._collect(inflight)
+
     def _iter(self, rate_e, t_s, packed: bool, checked: bool = False, owned: bool = False,
-              overlap: int = 0) -> Iterator[np.ndarray]:
+              overlap: int = 0, lookahead: bool = False) -> Iterator[np.ndarray]:
+        self._check_usable()
         if self.finished:
             raise InputError("this stream is finished; start a new SpikeSimulator")
         rate_e = self._check_shape(rate_e)
+        if lookahead and not (packed and owned):
+            raise ValueError("lookahead needs packed output and owned=True input (the block in flight reads the "
+                             "keyframes after this call returns)")
+        # lookahead only where the model starts blocks without waiting (the fast implementations)
+        ahead = lookahead and self.looks_ahead
+        if not ahead:  # a caller that stops looking ahead gets the block in flight first
+            for bits in self._drain():
+                yield bits if packed else unpack_frames(bits, self.profile.shape)
         # no copy of the caller's keyframes: the blocks they complete are simulated now, and the
         # few rows still needed afterwards are copied by detach() before control returns for good
         # (not even those when the caller hands the array over: owned)
@@ -109,6 +159,17 @@ class SpikeSimulator:
                           check=not checked, owned=owned, overlap=overlap)
         try:
             while self.schedule.covered() >= self.n_done + self.block:
+                if ahead:
+                    previous = self._inflight  # the new block's tiles each follow theirs in this one
+                    try:
+                        self._submit(self.n_done, self.n_done + self.block)
+                    except BaseException as e:  # tiles of it may have run (one thread): the state is torn
+                        self._failed = e
+                        raise
+                    self.n_done += self.block
+                    if previous is not None:
+                        yield self._collect(previous)
+                    continue
                 out = self._run(self.n_done, self.n_done + self.block, packed)
                 self.n_done += self.block
                 yield out
@@ -120,7 +181,7 @@ class SpikeSimulator:
         return self._iter(rate_e, t_s, packed=False)
 
     def iter_feed_packed(self, rate_e, t_s=None, *, checked: bool = False, owned: bool = False,
-                         overlap: int = 0) -> Iterator[np.ndarray]:
+                         overlap: int = 0, lookahead: bool = False) -> Iterator[np.ndarray]:
         """Like :meth:`iter_feed`, yielding bit-packed blocks uint8 (B, ceil(H*W/8)).
 
         Frame layout (:func:`pack_frames`): image orientation, pixel ``p = r*W + c``
@@ -135,8 +196,17 @@ class SpikeSimulator:
         call (:meth:`RateSchedule.add`); a reader that delivers the rows of each block
         (:func:`sensor.rates.block_keyframe_rows`) this way spares the copy that joins keyframes
         spanning two chunks. None of these changes the spikes.
+
+        ``lookahead=True`` (fast implementations; needs ``owned=True``): each block is started on the
+        thread pool and the one before it is yielded while it runs, so the kernel's threads go on from one
+        block to the next without waiting for the slowest tile or for the caller (its writer, its reader,
+        this method's own set-up of the next block). The last block this call starts stays in flight: the
+        next call that completes a block (or any call without lookahead, or :meth:`iter_finish_packed`)
+        yields it first. Same spikes, in the same order. If a block's tiles fail, the error is raised when
+        that block is handed over, and the stream cannot go on (the next block has run past it).
         """
-        return self._iter(rate_e, t_s, packed=True, checked=checked, owned=owned, overlap=overlap)
+        return self._iter(rate_e, t_s, packed=True, checked=checked, owned=owned, overlap=overlap,
+                          lookahead=lookahead)
 
     def feed(self, rate_e, t_s=None) -> np.ndarray:
         """Add rate data; return the spikes bool (n, H, W) of the intervals completed by it."""
@@ -144,21 +214,31 @@ class SpikeSimulator:
         return np.concatenate(blocks) if blocks else np.zeros((0,) + self.profile.shape, bool)
 
     def finish(self) -> np.ndarray:
-        """Simulate the last, partial block; return its spikes (n, H, W). The stream then ends."""
+        """Simulate the last, partial block; return its spikes (n, H, W), after those of a block still in flight
+        (``iter_feed_packed(lookahead=True)``). The stream then ends."""
         bits = self.finish_packed()
         return unpack_frames(bits, self.profile.shape)
 
     def finish_packed(self) -> np.ndarray:
-        """Like :meth:`finish`, bit-packed: uint8 (n, ceil(H*W/8))."""
-        if self.finished:
+        """Like :meth:`finish`, bit-packed: uint8 (n, ceil(H*W/8)), the block still in flight included."""
+        parts = list(self.iter_finish_packed())
+        if not parts:
             return np.zeros((0, self.n_bytes), np.uint8)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def iter_finish_packed(self) -> Iterator[np.ndarray]:
+        """Like :meth:`finish_packed`, as blocks: the one still in flight (``lookahead``), then the last,
+        partial one (none when the stream ends on a block boundary). The stream then ends."""
+        self._check_usable()
+        if self.finished:
+            return
+        yield from self._drain()
         self.finished = True
         end = self.schedule.covered()
         if end > self.n_done:
             out = self._run(self.n_done, end, packed=True)
             self.n_done = end
-            return out
-        return np.zeros((0, self.n_bytes), np.uint8)
+            yield out
 
     @property
     def n_bytes(self) -> int:

@@ -368,8 +368,8 @@ class RateSource:
         source while anything else holds it: an array of the source's pool (reused only once the
         consumer has dropped every reference to it, views included), or for a float32 .npy or stored
         .npz a view of the file's read-only memory map, whose pages are dropped from the process once
-        the consumer asks for the next chunk (they are read again from the page cache if still
-        touched). The consumer may keep a chunk (``iter_feed_packed(owned=True)``). Repeated rows are
+        the consumer asks for the chunk after next (a simulator looking ahead still reads the one before;
+        pages still touched are read again from the page cache). The consumer may keep a chunk (``iter_feed_packed(owned=True)``). Repeated rows are
         copied from the previous chunk (a memory map's are part of the view), not read again.
         """
         bounds = [(int(i), int(j)) for i, j in bounds]
@@ -406,16 +406,20 @@ class RateSource:
 
     def _chunks_plain(self, profile, bounds):
         state = {"prev": None, "end": 0}
+        used = None  # rows of the chunk before: a simulator looking ahead reads them until this chunk's next
         try:
             for i, j in bounds:
                 rate, ov = self._read_next(profile, i, j, state)
                 yield rate, (None if self.t_s is None else self.t_s[i:j]), ov
                 del rate
-                self._release(i, j)
+                if used is not None:
+                    self._release(*used)
+                used = (i, j)
         finally:
             self.close()
 
     def _chunks_prefetched(self, profile, bounds, ex, futs, depth, state):
+        used = None  # as in _chunks_plain
         try:
             for k, (i, j) in enumerate(bounds):
                 rate, ov = futs.popleft().result()
@@ -423,7 +427,9 @@ class RateSource:
                     futs.append(ex.submit(self._read_next, profile, *bounds[k + depth], state))
                 yield rate, (None if self.t_s is None else self.t_s[i:j]), ov
                 del rate
-                self._release(i, j)
+                if used is not None:
+                    self._release(*used)
+                used = (i, j)
         finally:
             ex.shutdown(wait=True, cancel_futures=True)
             state["prev"] = None
@@ -470,12 +476,13 @@ def _run(args, frozen: dict) -> int:
         for rate, t, overlap in chunks:
             # the reader checked the rates (naming file and row) and hands each fresh chunk over; its first
             # `overlap` keyframes repeat the last ones of the previous chunk (block-aligned reads)
-            for bits in sim.iter_feed_packed(rate, t, checked=True, owned=True, overlap=overlap):
+            # lookahead: the kernel's threads start on each block while this thread hands over the one before
+            for bits in sim.iter_feed_packed(rate, t, checked=True, owned=True, overlap=overlap, lookahead=True):
                 writer.write_packed(bits, profile.shape)  # counted, re-ordered and written by a writer thread
                 bar.update(bits.shape[0])
-        last = sim.finish_packed()
-        writer.write_packed(last, profile.shape)
-        bar.update(last.shape[0])
+        for bits in sim.iter_finish_packed():  # the block in flight, then the last, partial one
+            writer.write_packed(bits, profile.shape)
+            bar.update(bits.shape[0])
     dt = time.perf_counter() - t0
     n = writer.n_intervals
     rate_hz = writer.n_spikes / max(n * profile.height * profile.width, 1) / profile.interval_s
@@ -497,9 +504,12 @@ def reserve_count(n_chunks: int, depth: int, chunk_bytes: int) -> int:
     starts (:meth:`sensor.buffers.RecyclingPool.reserve`), not by the reader beside the running kernel
     (0.1-0.2 s of CPU over 4 s of frames on the project's VM, where a first touch runs at ~0.4 GB/s).
 
-    The run holds ``depth + 2`` at once (the read-ahead, the one in use, one the simulator keeps); the
-    reader takes its first at once, a new one, while the helper still holds the reserved ones: so
-    ``depth + 1``, and no more than the chunks after the first. Nothing past :data:`RESERVE_MAX_BYTES`
+    The run holds ``depth + 3`` at once (the read-ahead, the one in use, the one whose block the simulator
+    has in flight, and the rows it keeps for the next block: see ``iter_feed_packed(lookahead=True)``); the
+    reader takes its first at once, a new one, while the helper still holds the reserved ones. ``depth + 1``
+    are reserved (no more than the chunks after the first), as before the lookahead: the one more chunk
+    it holds is made by the reader beside the kernel, once per run (20 MB for a frames folder at
+    400 x 250; not measured separately). Nothing past :data:`RESERVE_MAX_BYTES`
     in all: a helper that is still writing a large array when the reader needs one makes the reader
     take a new one beside it (one rate per interval: 400 MB chunks at 400 x 250).
     """
@@ -510,7 +520,10 @@ def plan_reads(src, sim, chunk: int | None = None, max_bytes: int = 256 << 20):
     """(row ranges to read, chunks to keep read ahead) for ``src`` feeding ``sim``.
 
     * One rate per interval: whole simulator blocks per read (at least ``chunk`` rows), so the schedule
-      takes views of them and never joins rows; one read ahead.
+      takes views of them and never joins rows; one read ahead, none for a memory-mapped input when
+      ``sim.looks_ahead`` (the block in flight then overlaps the main thread's check of the next one, and
+      a read ahead would only hold a third block of rows: 400 MB at 400 x 250). A deflated ``.npz`` keeps
+      its reader thread.
     * Keyframes, ``chunk`` None: one read per simulator block, its keyframes exactly
       (:func:`sensor.rates.block_keyframe_rows`; consecutive reads share the one or two keyframes at the
       block boundary, copied, not read again), so every block's keyframes are one array and the
@@ -525,7 +538,9 @@ def plan_reads(src, sim, chunk: int | None = None, max_bytes: int = 256 << 20):
     row_bytes = 4 * src.shape[0] * src.shape[1]
     if src.per_interval:
         size = sim.block * -(-max(1, chunk or 1) // sim.block)
-        return [(i, min(src.n, i + size)) for i in range(0, src.n, size)], 1
+        mapped = getattr(src, "rate", None) is not None  # rows are views of a memory map (.npy, stored .npz)
+        return [(i, min(src.n, i + size)) for i in range(0, src.n, size)], \
+            0 if mapped and getattr(sim, "looks_ahead", False) else 1
     if chunk is None:
         from sensor.rates import block_keyframe_rows
         bounds = block_keyframe_rows(src.t_s, sim.block, sim.interval_s)

@@ -107,7 +107,7 @@ def test_block_aligned_chunks_give_the_same_spikes_and_are_never_joined(name):
     got.append(sim.finish_packed())
     spikes = sensor.spikefile.unpack_frames(np.concatenate(got), prof.shape)
     np.testing.assert_array_equal(spikes, whole)
-    assert sim.schedule._scratch is None  # no block's keyframes were ever joined from two chunks
+    assert all(b is None for b in sim.schedule._scratch_pair)  # no block's keyframes were ever joined from two chunks
 
 
 def test_overlap_must_repeat_the_last_keyframes_and_leaves_the_stream_intact_when_refused():

@@ -306,6 +306,12 @@ def test_read_plan_covers_two_blocks_of_keyframes_within_a_memory_cap():
     assert plan_reads(big, sim)[0][:2] == [(0, 32), (32, 64)]  # 200 MB per block: fixed chunks instead
     bounds, ahead = plan_reads(NS(per_interval=True, n=5000, shape=(250, 400)), sim, 1)
     assert bounds == [(0, 1000), (1000, 2000), (2000, 3000), (3000, 4000), (4000, 5000)] and ahead == 1
+    # a simulator that starts each block ahead overlaps the reads itself: no third block of rows held
+    mapped = NS(per_interval=True, n=5000, shape=(250, 400), rate=np.zeros(0))
+    assert plan_reads(mapped, NS(block=1000, looks_ahead=True), 1) == (bounds, 0)
+    assert plan_reads(mapped, NS(block=1000, looks_ahead=False), 1)[1] == 1  # the reference: reads overlap it
+    assert plan_reads(NS(per_interval=True, n=5000, shape=(250, 400), rate=None), NS(block=1000, looks_ahead=True),
+                      1)[1] == 1  # a deflated member is decoded by the reader thread
 
 
 @pytest.mark.parametrize("depth", [0, 1, 3])
