@@ -19,8 +19,8 @@ class SpikeSimulator:
 
     Feed the rate in chunks of any size (:meth:`feed`), then call
     :meth:`finish`. Memory is bounded by one block of intervals (two with
-    ``iter_feed_packed(lookahead=True)``) plus the buffered keyframes; the output for a given seed is bitwise identical for
-    any chunking.
+    ``iter_feed_packed(lookahead=True)``) plus the buffered keyframes; the
+    output for a given seed is bitwise identical for any chunking.
 
     Parameters
     ----------

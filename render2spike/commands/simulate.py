@@ -369,8 +369,9 @@ class RateSource:
         consumer has dropped every reference to it, views included), or for a float32 .npy or stored
         .npz a view of the file's read-only memory map, whose pages are dropped from the process once
         the consumer asks for the chunk after next (a simulator looking ahead still reads the one before;
-        pages still touched are read again from the page cache). The consumer may keep a chunk (``iter_feed_packed(owned=True)``). Repeated rows are
-        copied from the previous chunk (a memory map's are part of the view), not read again.
+        pages still touched are read again from the page cache). The consumer may keep a chunk
+        (``iter_feed_packed(owned=True)``). Repeated rows are copied from the previous chunk (a memory
+        map's are part of the view), not read again.
         """
         bounds = [(int(i), int(j)) for i, j in bounds]
         for (i0, j0), (i1, j1) in zip(bounds, bounds[1:]):
