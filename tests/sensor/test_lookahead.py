@@ -206,7 +206,7 @@ def test_a_failed_block_ends_the_stream(small_tiles, monkeypatch):
     tile = fast.ELSSimFast._tile
 
     def failing(self, seg, state, rng, p0, p1, out):
-        if seg.m0 == 2 * 1000 and p0 == 64:
+        if seg.m0 == 2 * fast.FAST_BLOCK_INTERVALS and p0 == 64:  # tile 1 of the third block
             raise FloatingPointError("tile broke")
         tile(self, seg, state, rng, p0, p1, out)
 
