@@ -19,7 +19,6 @@ for the check alone. Writes ``frozen_replay.json`` and ``frozen_replay.md`` in `
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time

@@ -8,7 +8,6 @@ Each case builds a small valid input, breaks one thing, runs the command in-proc
 import errno
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys

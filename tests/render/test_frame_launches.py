@@ -227,7 +227,7 @@ def test_set_time_keeps_and_writes_exactly_the_moving_objects_parameters(write_s
     want = {"thing.vertex_positions", "thing.vertex_normals", "thing2.to_world"} if launch == "film" else \
         {"thing.to_world", "thing2.to_world"}  # the frozen launch moves the cube as an instance
     assert set(r.params.keys()) == want
-    def value(k):  # a transform's matrix or a buffer, as float64 numbers
+    def value(k, r=r):  # a transform's matrix or a buffer, as float64 numbers
         v = r.params[k]
         return np.array(v.matrix if hasattr(v, "matrix") else v, dtype=np.float64).ravel()
     before = {k: value(k) for k in want if k.endswith(("positions", "to_world"))}

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from render2spike.render.motion import (Keyframes, Motion, Pose, look_at_rotation, quat_from_axis_angle,
+from render2spike.render.motion import (Motion, Pose, look_at_rotation, quat_from_axis_angle,
                                         quat_from_euler_deg, quat_from_matrix, quat_to_matrix, slerp)
 
 

@@ -1,9 +1,7 @@
 """Scene files: schema validation, clear errors, overrides, bundled scenes (no rendering)."""
 
-from pathlib import Path
 
 import pytest
-import yaml
 
 from render2spike.render.scene import SCENES_DIR, apply_overrides, load_scene
 from sensor.errors import InputError

@@ -2,7 +2,6 @@
 block arrive as one array (no join), Phi is scaled and checked in one pass, rates are checked in one
 pass -- and none of it changes a value or a spike."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest

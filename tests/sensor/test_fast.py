@@ -20,7 +20,6 @@ random numbers: the fast path is equal in distribution, never bitwise), and
 The oracle tests of ``test_models.py`` also run on both implementations.
 """
 
-import os
 
 import numpy as np
 import pytest
@@ -383,7 +382,7 @@ def test_keyframe_rate_spanning_blocks_agrees():
 
 # -------------------------------------------------------------------------------------- isi model
 def test_isi_model_fast_agrees_with_reference():
-    H, W, T = 25, 30, 3000
+    H, W = 25, 30
     prof = profile(H, W, 20.0, dark_rate=0.002, prnu_sigma=0.1, hot_pixel_fraction=0.02, seed=8)
     rng = np.random.default_rng(11)
     t = np.arange(0, 151) * 1e-3

@@ -1,0 +1,35 @@
+"""Golden test: the README's main job on a small window gives the same frames and spikes, bit for bit.
+
+The hashes in ``tests/golden/golden.json`` were recorded with ``python3 -m tests.golden.record``. They pin
+the frames (Phi and E pixels, times, seeds) of ``render2spike run rotating_disk`` on a 16 x 24 window for
+10 ms, its spikes (``.npz`` and ``.dat``), ``render2spike simulate`` of those frames with each other model,
+reset and the reference simulator, and ``sensor.simulate`` of a fixed rate array. A change that is meant to
+leave behaviour alone must leave every hash alone; a change of physics or sampling re-records them and says
+why in its commit.
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.render.conftest import needs_mitsuba
+
+GOLDEN = Path(__file__).parent / "golden" / "golden.json"
+
+
+@needs_mitsuba
+@pytest.mark.render
+def test_main_job_hashes_unchanged(tmp_path):
+    from tests.golden.record import record
+    want = json.loads(GOLDEN.read_text())
+    got = record(tmp_path)
+    assert got["run"]["frames"] == want["run"]["frames"], "rendered frames differ from the golden run"
+    for key in sorted(want):
+        assert got[key] == want[key], f"{key}: {got[key]} != golden {want[key]}"
+
+
+def test_in_memory_simulation_hashes_unchanged():
+    from tests.golden.record import in_memory_cases
+    want = json.loads(GOLDEN.read_text())["in-memory"]
+    assert in_memory_cases() == want
