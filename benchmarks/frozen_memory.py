@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(row, flush=True)
     a.out.mkdir(parents=True, exist_ok=True)
-    from sensor.fileio import write_json_atomic, write_text_atomic
+    from sensor.io.fileio import write_json_atomic, write_text_atomic
     write_json_atomic(a.out / "frozen_memory.json", {"when": time.strftime("%Y-%m-%d %H:%M"), "rows": rows})
     lines = ["# Peak memory of one frame (`benchmarks/frozen_memory.py`)", "",
              f"{time.strftime('%Y-%m-%d %H:%M')}, {a.scene}, full sensor, {a.spp} spp; each row its own process.", "",

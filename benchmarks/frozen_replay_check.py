@@ -92,7 +92,7 @@ def main(argv=None) -> int:
                      f"{' '.join(str(x['values_differing']) for x in row['frames'])} | "
                      f"{row['frames'][-1]['recordings']} |")
     a.out.mkdir(parents=True, exist_ok=True)
-    from sensor.fileio import write_json_atomic, write_text_atomic
+    from sensor.io.fileio import write_json_atomic, write_text_atomic
     write_json_atomic(a.out / "frozen_replay.json", res)
     write_text_atomic(a.out / "frozen_replay.md", "\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -14,7 +14,7 @@ load average is recorded before and after.
 
 Sections
 --------
-0. **Frame write**: ``sensor.frames.write_frame`` (its own EXR encoder) against
+0. **Frame write**: ``sensor.io.frames.write_frame`` (its own EXR encoder) against
    the same frame written through the OpenEXR binding, at 64 x 96 and 250 x 400.
 1. **Throughput and overhead** (per bundled scene, at its 64 x 96 window and at
    the full 250 x 400 sensor; fixed spp, adaptive refinement off): the pipeline
@@ -298,7 +298,7 @@ def m_noise(cfg):
         ratios.append(render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, W, K))
     per_frame = None
     if cfg.get("wait_frames"):
-        from sensor.frames import write_frame
+        from sensor.io.frames import write_frame
         n = int(cfg["wait_frames"])
         with tempfile.TemporaryDirectory() as d:
             # warm-up frame, untimed: a new spp compiles new kernels once per run (part of setup, not per frame)
@@ -322,10 +322,10 @@ def m_noise(cfg):
 
 
 def m_write(cfg):
-    """Section 0: one frame write (``sensor.frames.write_frame``: temp file, one write, rename) against the
+    """Section 0: one frame write (``sensor.io.frames.write_frame``: temp file, one write, rename) against the
     same frame written through the OpenEXR binding (the writer before, still the fallback), alternating,
     with a render job's header attributes; median milliseconds per frame."""
-    from sensor import frames as F
+    from sensor.io import frames as F
     H, W, n = int(cfg["height"]), int(cfg["width"]), int(cfg.get("repeats", 40))
     rng = np.random.default_rng(0)
     phi = rng.uniform(0, 1e12, (H, W)).astype(np.float32)
@@ -337,7 +337,7 @@ def m_write(cfg):
     header.update((k, F._attr_kind(v)) for k, v in attrs.items())
 
     def binding(path):
-        from sensor.fileio import atomic_path
+        from sensor.io.fileio import atomic_path
         with atomic_path(path) as tmp:
             F._write_frame_openexr(tmp, phi, lux, header)
     t = {"encoder": [], "binding": []}
@@ -408,7 +408,7 @@ def _dur(s):
 
 
 def write_report(res, meta, out_dir: Path) -> Path:
-    from sensor.fileio import write_json_atomic, write_text_atomic
+    from sensor.io.fileio import write_json_atomic, write_text_atomic
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out_dir / "render.json", {"meta": meta, **res})
     L = ["# render2spike render benchmark", "",
@@ -431,7 +431,7 @@ def write_report(res, meta, out_dir: Path) -> Path:
                            f"{list(m.get('load_before') or [])} / {list(m.get('load_after') or [])}.")
         return [" ".join(out), ""] if out else []
     if res.get("write"):
-        L += ["## Frame write (sensor.frames.write_frame against the OpenEXR binding)", ""] + when("write") + [
+        L += ["## Frame write (sensor.io.frames.write_frame against the OpenEXR binding)", ""] + when("write") + [
               "One frame (Phi and E float32, uncompressed scanline, a render job's header) to a temp file in /tmp, "
               "renamed; the two writers alternate, median of the repeats after two warm-up rounds. 'same bytes': "
               "the two files are identical.", "",

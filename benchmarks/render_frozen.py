@@ -99,8 +99,8 @@ def pipeline_child(scene: str, size: str, spp: int, launch: str, frames: int, wr
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     rmod.SceneRenderer.render_frame = wrapped
     if not write:  # the diagnostic: the job with its frame files left out (the journal still names them)
-        import sensor.frames
-        sensor.frames.write_frame = lambda *a, **k: None
+        import sensor.io.frames
+        sensor.io.frames.write_frame = lambda *a, **k: None
     with tempfile.TemporaryDirectory(dir=HERE / ".scratch" if (HERE / ".scratch").is_dir() else None) as d:
         res = render_scene(sc, Path(d) / "f", progress=False, log=lambda *a: None, launch=launch)
         t_end = time.perf_counter()
@@ -115,7 +115,7 @@ def pipeline_child(scene: str, size: str, spp: int, launch: str, frames: int, wr
 
 def file_create_probe(folder: Path, n: int = 200) -> dict:
     """What making one file costs in ``folder`` now: ``n`` small files each created under a temp name
-    (``O_CREAT | O_EXCL``), written (7 kB, a 32 x 48 frame's size) and renamed, as ``sensor.fileio.
+    (``O_CREAT | O_EXCL``), written (7 kB, a 32 x 48 frame's size) and renamed, as ``sensor.io.fileio.
     write_bytes_atomic`` writes a frame; then removed. -> ``{"wall_ms", "sys_ms"}`` per file (the system CPU
     time of this process: the kernel's part, which a frame's writer thread takes from the render's threads).
 

@@ -121,7 +121,7 @@ def ratio_rows(rows: list[dict], ref_rows: list[dict], ref_name: str) -> list[di
 
 
 def write_report(out_dir: Path, meta: dict, rows: list[dict], ref: dict | None) -> Path:
-    from sensor.fileio import write_json_atomic, write_text_atomic
+    from sensor.io.fileio import write_json_atomic, write_text_atomic
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out_dir / "render_gpu.json", {"meta": meta, "rows": rows})
     m = meta["machine"]

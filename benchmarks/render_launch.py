@@ -216,7 +216,7 @@ def _fmt(v, spec=".3f"):
 
 def write_md(out: Path, rows: list[dict]) -> Path:
     """The report: one table line per row (columns absent from older rows as '-')."""
-    from sensor.fileio import write_text_atomic
+    from sensor.io.fileio import write_text_atomic
     lines = ["# Where one render launch's time goes", "",
              "Medians per frame in ms (`benchmarks/render_launch.py`; columns in its docstring; '-': not "
              "measured by the version of the script that made the row).", "",
@@ -300,7 +300,7 @@ def main(argv=None):
     mline = f"{mach['cpu']}, {mach['cores']} cores" + (f"; GPU {mach['gpu']}" if mach["gpu"] else "")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    from sensor.fileio import write_json_atomic
+    from sensor.io.fileio import write_json_atomic
     rows = _read_rows(js, ap) if js.is_file() else []
     sets = ["camera.profile=vidar-default"] if a.full else []
     command = "python benchmarks/render_launch.py " + " ".join(argv)

@@ -47,7 +47,7 @@ def _render(scene: str, spp: int, variant: str | None, duration_s: float, out: P
 
 def compare(a: Path, b: Path) -> dict:
     """Frames of two folders compared channel by channel (same file names expected)."""
-    from sensor.frames import read_frame
+    from sensor.io.frames import read_frame
     fa, fb = sorted(a.glob("frame_*.exr")), sorted(b.glob("frame_*.exr"))
     ma, mb = (json.loads((f / "frames.json").read_text()) if (f / "frames.json").is_file() else {} for f in (a, b))
     if [p.name for p in fa] != [p.name for p in fb] or not fa:
@@ -75,7 +75,7 @@ def compare(a: Path, b: Path) -> dict:
 
 
 def write_report(out: Path, meta: dict, rows: list[dict]) -> Path:
-    from sensor.fileio import write_json_atomic, write_text_atomic
+    from sensor.io.fileio import write_json_atomic, write_text_atomic
     write_json_atomic(out / "repro.json", {"meta": meta, "rows": rows})
     lines = ["# Two runs of the same render command", "",
              f"`{meta['command']}`, {meta['date']}, {meta['machine']}", "",

@@ -16,7 +16,7 @@ time are its own):
   (:mod:`benchmarks.scene` gives the lux -> e-/interval chain);
 * output: the full spike stream, bit-packed (``SpikeSimulator.iter_feed_packed``),
   written to a file on disk by a writer thread (``--sink disk``, default; at most two
-  blocks queued, the final flush is timed; through :class:`sensor.fileio.DirectStream`, as
+  blocks queued, the final flush is timed; through :class:`sensor.io.fileio.DirectStream`, as
   ``render2spike simulate`` writes) or dropped (``--sink none``);
 * timed: ``feed`` + simulation + the write; **not** timed: generating the keyframes
   (the renderer's job) and the first-call JIT compilation / cache load, which is
@@ -55,7 +55,7 @@ sys.path.insert(0, str(HERE))
 
 from scene import KEYFRAME_HZ, MovingScene, lux_to_rate_e  # noqa: E402
 from tables import fmt as _fmt  # noqa: E402
-from sensor.fileio import write_text_atomic  # noqa: E402
+from sensor.io.fileio import write_text_atomic  # noqa: E402
 from sensor.units import intervals_to_seconds, seconds_to_intervals  # noqa: E402
 
 LUX = (0.1, 1.0, 5.0, 50.0, 500.0)
@@ -67,7 +67,7 @@ def _profile(name):
     try:
         return SensorProfile.load(name)
     except Exception:  # no bundled profile yet: a synthetic one like it
-        from sensor.vidar import VIDAR_SYNTHETIC
+        from sensor.calibration.vidar import VIDAR_SYNTHETIC
         return SensorProfile.synthetic(250, 400, **VIDAR_SYNTHETIC, seed=0, name="synthetic-vidar-like")
 
 
@@ -86,7 +86,7 @@ def _warmup(profile, model, implementation) -> float:
 class _Writer:
     """Writes blocks to a file from a background thread (the write releases the GIL), at most 2 queued.
 
-    The file is a :class:`sensor.fileio.DirectStream`, as ``render2spike simulate``'s ``.dat`` writer's:
+    The file is a :class:`sensor.io.fileio.DirectStream`, as ``render2spike simulate``'s ``.dat`` writer's:
     the same way around the page cache (on this VM a buffered write of 1 GB costs about 2 CPU s), so the
     kernel baseline writes its spikes as cheaply as the command can."""
 
@@ -139,7 +139,7 @@ def run_one(cfg: dict) -> dict:
     sim = SpikeSimulator(profile, model, seed=1, implementation=impl)
     sink = None
     if cfg["sink"] == "disk":
-        from sensor.fileio import DirectStream
+        from sensor.io.fileio import DirectStream
         fd, sink_path = tempfile.mkstemp(suffix=".spk", dir=cfg.get("tmpdir"))
         os.close(fd)
         sink = _Writer(DirectStream(sink_path))
@@ -262,7 +262,7 @@ def _cli(inp: Path, out: Path, profile: str) -> dict:
 def _make_frames(folder: Path, profile, lux: float, duration_s: float) -> Path:
     """The benchmark scene's keyframes (1 kHz) as a frames folder (Phi [e-/(s m^2)] in float32 EXR)."""
     from sensor import photoelectron_rate
-    from sensor.frames import frame_filename, write_frame, write_manifest
+    from sensor.io.frames import frame_filename, write_frame, write_manifest
     scene = MovingScene(profile, lux, seed=0, duration_s=duration_s)
     per_phi = float(photoelectron_rate(np.ones(1), profile)[0])  # e-/interval per unit Phi
     entries = []
@@ -275,7 +275,7 @@ def _make_frames(folder: Path, profile, lux: float, duration_s: float) -> Path:
 
 def _subset(src: Path, dst: Path, n: int) -> Path:
     """A frames folder with the first n frames of ``src`` (hard links, no copies)."""
-    from sensor.frames import read_frames, write_manifest
+    from sensor.io.frames import read_frames, write_manifest
     seq = read_frames(src)
     dst.mkdir(parents=True, exist_ok=True)
     entries = seq.manifest["frames"][:n]
@@ -430,7 +430,7 @@ def _cli_say(r):
 
 def _nthreads():
     try:
-        from sensor.fast import n_threads
+        from sensor.models.fast import n_threads
         return n_threads()
     except ImportError:
         return 1
@@ -518,7 +518,7 @@ def write_tables(rows, mem_rows, meta, out_dir: Path, cli_rows_=None):
                   "keyframes exactly, so none is ever joined, made just before its feed: hot in the caches, "
                   "the kernel at its fastest), output written to disk by a thread, most of each block's write while "
                   "the block's spikes are counted (untimed), the rest waited for inside the timed sections (so "
-                  "the kernel's time is close to its time with no output at all), through the command's own writer stream (sensor.fileio.DirectStream: "
+                  "the kernel's time is close to its time with no output at all), through the command's own writer stream (sensor.io.fileio.DirectStream: "
                   "around the page cache where the file system allows), JIT and input making excluded). CPU s = user + system seconds of every thread: the whole command's, and the kernel "
                   "process's inside its timed sections. "
                   f"Start-up = the command on a 2-frame folder ({cli_rows_[0]['startup_s']:.2f} s, fastest of 3); "
@@ -663,7 +663,7 @@ def main(argv=None):
             "date": time.strftime("%Y-%m-%d %H:%M:%S"), "machine": _machine(), "load_before": load_before,
             "load_after": tuple(round(x, 2) for x in os.getloadavg()), "profile": prof.name,
             "height": prof.height, "width": prof.width, "threshold_e": prof.threshold_e,
-            "sink": "a file on disk (sensor.fileio.DirectStream)" if a.sink == "disk" else "nowhere (dropped)", "duration_s": a.duration,
+            "sink": "a file on disk (sensor.io.fileio.DirectStream)" if a.sink == "disk" else "nowhere (dropped)", "duration_s": a.duration,
             "ref_intervals": a.ref_intervals}
     path = write_tables(rows, mem_rows, meta, Path(a.out), cli)
     print(f"wrote {path} and {path.with_suffix('.csv')}")

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import provenance, write_json_atomic
+from sensor.io.fileio import provenance, write_json_atomic
 
 from .classic import deadtime_correct, tfp
 
@@ -92,7 +92,7 @@ def smooth_rate(rate, profile, sigma: float) -> np.ndarray:
     own, and smoothing before the (nonlinear, zero-clipped) inversion avoids the
     upward bias of inverting a few spikes per pixel. ``sigma <= 0``: unchanged.
     """
-    from sensor.effects import dark_event_probability
+    from sensor.models.effects import dark_event_probability
     r = np.asarray(rate, np.float64)
     if sigma <= 0:
         return r

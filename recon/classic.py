@@ -147,8 +147,8 @@ def tfi(spikes, center: int | None = None) -> np.ndarray:
     return (1.0 / (t_next - t_prev)).astype(np.float32)
 
 
-# dead-time-corrected TFP inverts the exact ELSSim renewal relation; it lives in sensor.theory
-from sensor.theory import invert_renewal_rate, renewal_spike_rate  # noqa: E402,F401  (re-exported)
+# dead-time-corrected TFP inverts the exact ELSSim renewal relation; it lives in sensor.analysis.theory
+from sensor.analysis.theory import invert_renewal_rate, renewal_spike_rate  # noqa: E402,F401  (re-exported)
 
 
 def tfp_deadtime(spikes, profile, window: int | None = None, center: int | None = None,
@@ -203,7 +203,7 @@ def deadtime_correct(rate, profile, correct_hot_pixels: bool = True) -> np.ndarr
     ``rate_e`` float32 (H, W) [e-/interval], per pixel with the profile's
     ``k``, refractory fraction, dark probability and hot-pixel charge.
     """
-    from sensor.effects import count_threshold, dark_event_probability
+    from sensor.models.effects import count_threshold, dark_event_probability
     r = np.asarray(rate, np.float64)
     if tuple(r.shape) != tuple(profile.shape):
         raise InputError(f"spikes are {r.shape[0]}x{r.shape[1]} but profile '{profile.name}' is "
@@ -229,7 +229,7 @@ _CROSSING_CACHE: dict = {}
 
 def _crossing_curves(k: int, f: float, mus: tuple) -> np.ndarray:
     """Read-out spike rate (len(mus), len(_CROSSING_X)) of a stationary crossing-reset pixel (cached)."""
-    from sensor.theory import crossing_rates
+    from sensor.analysis.theory import crossing_rates
     key = (int(k), round(float(f), 9), mus)
     if key not in _CROSSING_CACHE:
         out = np.empty((len(mus), _CROSSING_X.size))
@@ -242,7 +242,7 @@ def _crossing_curves(k: int, f: float, mus: tuple) -> np.ndarray:
 
 
 def _invert_crossing(r, k, f, mu) -> np.ndarray:
-    """Invert the crossing-reset read-out rate per pixel: ``rate_e`` [e-/interval] (``sensor.theory.crossing_rates``).
+    """Invert the crossing-reset read-out rate per pixel: ``rate_e`` [e-/interval] (``sensor.analysis.theory.crossing_rates``).
 
     The curve ``r(x)``, ``x = lam / k``, is tabulated at the median ``k`` and
     refractory fraction of the pixels (``r`` depends on ``k`` only through

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.units import intervals_to_seconds
-from sensor.vidar import VIDAR_SYNTHETIC
+from sensor.calibration.vidar import VIDAR_SYNTHETIC
 from sensor.errors import InputError
 from sensor.profile import SensorProfile
 
@@ -110,7 +110,7 @@ def sensor_maps(profile: SensorProfile) -> np.ndarray:
     hot, else 0) tells the output head's classic estimates which pixels to
     leave out of their smoothing (:func:`recon.nets.classic_bank`).
     """
-    from sensor.effects import dark_event_probability
+    from sensor.models.effects import dark_event_probability
     return np.stack([dark_event_probability(profile.dark_rate), profile.prnu_gain,
                      profile.hot_mask]).astype(np.float32)
 
@@ -166,7 +166,7 @@ class _Base:
                  window: int = RSIR_WINDOW, intervals: int | None = None, warmup: int = 64,
                  include_spikes: bool = False, max_items: int | None = None, implementation: str = "fast",
                  start: str = "phase"):
-        from sensor.models import MODELS
+        from sensor.models.step import MODELS
         if model not in MODELS:
             from sensor.errors import UnknownMethodError
             raise UnknownMethodError("spike model", model, MODELS)
@@ -515,7 +515,7 @@ class RenderedDataset(_Base):
 
     @functools.lru_cache(maxsize=4)
     def _stored(self, si: int):
-        from sensor.spikefile import read_spikes_with_meta
+        from sensor.io.spikefile import read_spikes_with_meta
         folder = self.seqs[si].folder
         p = Path(self.spikes_name)
         p = p if p.is_absolute() else folder / p
@@ -573,7 +573,7 @@ class SDMDDataset(_Base):
     Layout::
 
         ROOT/split.json                 {"train": [scene, ...], "test": [scene, ...]}  (80 / 20 in SDMD)
-        ROOT/<scene>/spikes.dat         SpikeCV .dat (see sensor.spikefile), H x W per frame
+        ROOT/<scene>/spikes.dat         SpikeCV .dat (see sensor.io.spikefile), H x W per frame
         ROOT/<scene>/reference.png      aligned reference (or .tif/.tiff/.exr/.npy)
         ROOT/<scene>/meta.json          optional: {"lux": 3.1, "height": 250, "width": 400,
                                                    "drop_columns": 0, "transfer": "srgb"|"linear",

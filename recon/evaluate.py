@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError, UnknownMethodError
-from sensor.fileio import atomic_path, write_json_atomic, write_text_atomic
+from sensor.io.fileio import atomic_path, write_json_atomic, write_text_atomic
 
 from .classic import tfi, tfp, tfp_deadtime
 from .imageio import show_image_row, white_level

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import atomic_path
+from sensor.io.fileio import atomic_path
 
 REC709_LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 

@@ -879,7 +879,7 @@ def save_checkpoint(path, model: RSIRNet, optimizer=None, *, step: int = 0, extr
     """Write model (and optimizer) state with the network config, atomically (torch.save format)."""
     from pathlib import Path
 
-    from sensor.fileio import atomic_path, provenance
+    from sensor.io.fileio import atomic_path, provenance
     state = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": model.config.to_dict(),
              "model": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "step": int(step),
              "provenance": provenance()}

@@ -31,9 +31,9 @@ def read_recording(path, *, layout: str | None = None, height: int | None = None
                    drop_columns: int = 0):
     """Any spike file ``sensor`` reads (container, .dat, Spike-Zoo/UHSR, SpikingSIM, RSIR .npz, HDF5).
 
-    Returns (bool (T, H, W), meta dict). One reader for the project: ``sensor.spikefile``.
+    Returns (bool (T, H, W), meta dict). One reader for the project: ``sensor.io.spikefile``.
     """
-    from sensor.spikefile import read_spikes_with_meta
+    from sensor.io.spikefile import read_spikes_with_meta
     return read_spikes_with_meta(path, layout=layout, height=height, width=width, drop_columns=drop_columns)
 
 
@@ -42,13 +42,13 @@ def recording_profile(spikes, source="the recording", warn: bool = True):
 
     :func:`recon.datasets.uniform_profile` (vidar-like threshold, refractory
     time and reset, the mean dark rate, no PRNU) with the hot pixels found in
-    the recording itself (:func:`sensor.calibration.scene_hot_pixels`), so
+    the recording itself (:func:`sensor.calibration.estimate.scene_hot_pixels`), so
     the dead-time correction and the network's output head leave them out.
     Warns (unless ``warn=False``), naming how many were found: a calibrated profile is better.
     """
     import warnings
 
-    from sensor.calibration import scene_hot_pixels
+    from sensor.calibration.estimate import scene_hot_pixels
 
     from .datasets import uniform_profile
     s = np.asarray(spikes)
@@ -91,7 +91,7 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
     ``sigma``: fixed width of ``tfp-dt-denoised`` (default: from the tuned table). Returns the written
     paths. Images are float32 (H, W) in :data:`UNITS`.
     """
-    from sensor.fileio import provenance
+    from sensor.io.fileio import provenance
     fmts = {f.strip().lower() for f in formats.split(",") if f.strip()}
     bad = fmts - {"png", "exr", "npy"}
     if bad or not fmts:

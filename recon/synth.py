@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensor.fileio import atomic_path
+from sensor.io.fileio import atomic_path
 
 
 def _texture(rng, H, W):

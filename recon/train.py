@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
 
 LOSS_FIELDS = ["step", "epoch", "loss", "refine", "fusion", "denoise", "bands", "nim", "head", "route", "lr", "elapsed_s"]
 

@@ -49,7 +49,7 @@ def cli_process() -> bool:
 
 _cli_blas_threads()
 
-from sensor.fileio import package_version as _pv  # noqa: E402
+from sensor.io.fileio import package_version as _pv  # noqa: E402
 
 __version__ = _pv()
 

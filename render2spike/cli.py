@@ -128,7 +128,7 @@ def main(argv=None) -> int:
         # last resort: a file or value problem we did not anticipate
         if os.environ.get("RENDER2SPIKE_DEBUG"):
             raise
-        from sensor.fileio import is_disk_full
+        from sensor.io.fileio import is_disk_full
         if is_disk_full(exc):
             where = getattr(exc, "filename", None) or getattr(args, "out", None)
             print(f"render2spike: error: disk full while writing {where or 'the output'} (no space left on "
@@ -145,7 +145,7 @@ def main(argv=None) -> int:
     finally:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
-        from sensor.fileio import remove_live_temps
+        from sensor.io.fileio import remove_live_temps
         remove_live_temps()  # temp files of writes a signal cut short before their own cleanup ran
         if from_command_line:
             # the process ends next: keep the interpreter's exit from a last cyclic-GC pass over every

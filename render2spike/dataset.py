@@ -71,7 +71,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import DependencyError, InputError, UnknownMethodError
-from sensor.fileio import atomic_path, package_version, provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import atomic_path, package_version, provenance, write_json_atomic, write_text_atomic
 
 DATASET_FORMAT = "render2spike-dataset"
 DATASET_VERSION = 1
@@ -342,8 +342,8 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
     from render2spike.studies.common import (clean_image, clean_window_average, parse_model_spec, profile_for,
                                              simulate_clip, window_centers)
     from sensor import photoelectron_rate
-    from sensor.frames import read_frames, write_frames
-    from sensor.spikefile import SPIKES_FORMAT, SPIKES_VERSION, pack_frames
+    from sensor.io.frames import read_frames, write_frames
+    from sensor.io.spikefile import SPIKES_FORMAT, SPIKES_VERSION, pack_frames
 
     t0 = time.perf_counter()
     final = Path(out_root) / "samples" / sid

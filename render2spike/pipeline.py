@@ -16,18 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-from sensor.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import atomic_path, provenance, write_json_atomic, write_text_atomic
 
 
 def simulate_frames(frames_dir, profile, model: str = "elssim", seed: int = 0, progress: bool = True):
     """Stream a frames folder through :class:`sensor.SpikeSimulator`.
 
-    Returns the spikes as :class:`sensor.spikefile.PackedSpikes` (bit-packed, 1 bit per pixel-interval)
+    Returns the spikes as :class:`sensor.io.spikefile.PackedSpikes` (bit-packed, 1 bit per pixel-interval)
     and the frame sequence.
     """
     import sensor
-    from sensor.frames import read_frames
-    from sensor.spikefile import PackedSpikes
+    from sensor.io.frames import read_frames
+    from sensor.io.spikefile import PackedSpikes
     seq = read_frames(frames_dir)
     sim = sensor.SpikeSimulator(profile, model, seed)
     parts = []
@@ -56,7 +56,7 @@ def _to_uint8(img, vmax=None):
 def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
     """TFP previews: a PNG (truth | TFP window | TFP all) and an animated GIF of TFP windows.
 
-    ``spikes`` is a :class:`sensor.spikefile.PackedSpikes`; only the windows shown are unpacked.
+    ``spikes`` is a :class:`sensor.io.spikefile.PackedSpikes`; only the windows shown are unpacked.
     """
     import imageio.v3 as iio
     import matplotlib
@@ -103,9 +103,9 @@ def write_previews(out: Path, spikes, seq, profile, window: int) -> dict:
 
 
 def _read_manifest(frames: Path) -> dict:
-    """A frames folder's manifest (``sensor.frames.MANIFEST_NAME``) as a dict; {} when there is none or unreadable."""
+    """A frames folder's manifest (``sensor.io.frames.MANIFEST_NAME``) as a dict; {} when there is none or unreadable."""
     try:
-        from sensor.frames import MANIFEST_NAME
+        from sensor.io.frames import MANIFEST_NAME
         m = json.loads((frames / MANIFEST_NAME).read_text())
     except (OSError, ValueError):
         return {}
@@ -126,7 +126,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     (InputError) unless ``overwrite``.
     """
     from sensor.errors import InputError
-    from sensor.spikefile import write_spikes
+    from sensor.io.spikefile import write_spikes
 
     from .render.frozen import check_launch
     from .render.job import _refusal_hint, launch_taken, render_scene
@@ -136,7 +136,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     t0 = time.perf_counter()
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a folder", path=out, field="--out")
-    from sensor.lock import sweep_parts
+    from sensor.io.lock import sweep_parts
     sweep_parts(out, log=log)
     check_launch(launch)
     sc = load_scene(scene, sets, lux=lux, duration_s=duration_s, profile=profile)
@@ -184,7 +184,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
                                                                "illuminance_lux": sc.illuminance_lux})
     files = {}
     if dat:
-        from sensor.spikefile import packed_to_dat
+        from sensor.io.spikefile import packed_to_dat
         with atomic_path(out / "spikes.dat") as tmp:
             packed_to_dat(spikes.packed, prof.height, prof.width).tofile(tmp)
         files["dat"] = str(out / "spikes.dat")

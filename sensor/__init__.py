@@ -5,17 +5,17 @@ pixel [e-/interval]; one interval is T_r = 50 us; thresholds are electrons.
 This package never imports Mitsuba.
 """
 
-from .errors import (CalibrationError, DependencyError, FrameFileError, InputError, ProfileError,
+from sensor.errors import (CalibrationError, DependencyError, FrameFileError, InputError, ProfileError,
                      Render2SpikeError, SpikeFileError, UnknownMethodError)
-from .frames import FrameSequence, read_frame, read_frames, write_frame, write_frames, write_manifest
-from .models import MODELS, get_model
-from .profile import SensorProfile, bundled_profiles
-from .rates import RateSchedule, interval_rates
-from .simulate import SpikeSimulator, simulate
-from .spectral import SpectralCurve
-from .spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts, write_dat,
+from sensor.io.frames import FrameSequence, read_frame, read_frames, write_frame, write_frames, write_manifest
+from sensor.models.step import MODELS, get_model
+from sensor.profile import SensorProfile, bundled_profiles
+from sensor.rates import RateSchedule, interval_rates
+from sensor.simulator import SpikeSimulator, simulate
+from sensor.spectral import SpectralCurve
+from sensor.io.spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts, write_dat,
                         write_h5, write_spikes)
-from .units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
+from sensor.units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
 
 
 def photoelectron_rate(phi, profile: SensorProfile, *, out=None):
@@ -24,7 +24,7 @@ def photoelectron_rate(phi, profile: SensorProfile, *, out=None):
     Thin wrapper of :func:`sensor.units.photoelectron_rate`, the one place the
     conversion is defined (``out``: a float32 array to write into, e.g. ``phi`` itself).
     """
-    from .units import photoelectron_rate as _per
+    from sensor.units import photoelectron_rate as _per
     return _per(phi, profile.pixel_pitch_m, profile.fill_factor, profile.interval_s, out=out)
 
 

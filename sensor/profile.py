@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ProfileError
-from .fileio import atomic_path, provenance as _provenance
-from .spectral import SpectralCurve
-from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, per_interval_to_hz, seconds_to_intervals
+from sensor.errors import ProfileError
+from sensor.io.fileio import atomic_path, provenance as _provenance
+from sensor.spectral import SpectralCurve
+from sensor.units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, per_interval_to_hz, seconds_to_intervals
 
 PROFILE_FORMAT = "render2spike-sensor-profile"
 PROFILE_VERSION = 2

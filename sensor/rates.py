@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
-from .units import INTERVAL_S
+from sensor.errors import InputError
+from sensor.units import INTERVAL_S
 
 _N_INTERVALS_EPS = 1e-6
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .units import BOLTZMANN_J_K, LUMINOUS_EFFICACY_LM_W, PLANCK_J_S, SPEED_OF_LIGHT_M_S, photons_per_joule
+from sensor.errors import InputError
+from sensor.units import BOLTZMANN_J_K, LUMINOUS_EFFICACY_LM_W, PLANCK_J_S, SPEED_OF_LIGHT_M_S, photons_per_joule
 
 
 @dataclass(frozen=True)

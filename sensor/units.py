@@ -56,7 +56,7 @@ def photoelectron_scale(pixel_pitch_m: float, fill_factor: float, interval_s: fl
 
     :func:`photoelectron_rate` multiplies by it (each product in float64, rounded once to
     float32); streaming readers that fuse the conversion into their read
-    (:meth:`sensor.frames.FrameSequence.read_scaled`) take it from here, so the factor is
+    (:meth:`sensor.io.frames.FrameSequence.read_scaled`) take it from here, so the factor is
     defined once.
     """
     return float(pixel_pitch_m) ** 2 * float(fill_factor) * float(interval_s)

@@ -90,7 +90,7 @@ def test_frame_with_nan_light_names_file_and_pixel(tmp_path, capsys):
 
 
 def test_folder_a_render_is_writing_into(tmp_path, capsys):
-    from sensor.lock import FolderLock
+    from sensor.io.lock import FolderLock
     folder = _frames(tmp_path)
     with FolderLock(folder):
         expect_refused(["simulate", folder, "--out", tmp_path / "s.npz", "--quiet"], tmp_path, capsys,
@@ -155,7 +155,7 @@ def test_stale_temp_files_of_a_killed_writer_are_swept(tmp_path, capsys):
 
 
 def test_disk_full_is_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
-    import sensor.fileio as fio
+    import sensor.io.fileio as fio
     p = _rate(tmp_path)
 
     def full(src, dst):
@@ -331,7 +331,7 @@ def test_temp_file_of_a_write_cut_short_inside_mkstemp_is_removed(tmp_path, monk
     """A signal landing between the temp file's creation and its registration still leaves nothing behind."""
     import tempfile
 
-    from sensor import fileio
+    from sensor.io import fileio
     real = tempfile.mkstemp
 
     def cut_short(*a, **kw):

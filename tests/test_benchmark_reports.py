@@ -80,7 +80,7 @@ def test_goal_lines_per_reference(tmp_path):
 
 
 def _frames(folder, values, E=None, reference=None):
-    from sensor.frames import frame_filename, write_frame, write_manifest
+    from sensor.io.frames import frame_filename, write_frame, write_manifest
     folder.mkdir()
     entries = []
     for i, v in enumerate(values):

@@ -6,7 +6,7 @@ Every command that writes checks its output first (:func:`check_output`):
 * an existing output file, or an existing non-empty output folder, is refused
   unless ``--overwrite`` is given;
 * unfinished temp files (``.NAME.part-PID-*``) that a killed writer left in
-  the output's folder are removed (:func:`sensor.lock.sweep_parts`).
+  the output's folder are removed (:func:`sensor.io.lock.sweep_parts`).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = Fals
     ``folder``: the output is a folder (refused when it exists, is not empty and ``overwrite`` is off);
     else a file (refused when it exists and ``overwrite`` is off). ``inputs``: paths read by the command.
     """
-    from sensor.lock import sweep_parts
+    from sensor.io.lock import sweep_parts
     out = Path(out)
     for src in inputs:
         if src is None:

@@ -41,7 +41,7 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.calibration import DEFAULT_HOT_THRESHOLD
+    from sensor.calibration.estimate import DEFAULT_HOT_THRESHOLD
     from render2spike.commands._common import HelpFormatter, add_overwrite
     p = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--dark", nargs="+", required=True, metavar="FILE", help="dark recordings (the paper uses 20)")
@@ -70,7 +70,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from render2spike.commands._common import check_output
     from sensor import SensorProfile
-    from sensor.calibration import calibrate, write_report
+    from sensor.calibration.estimate import calibrate, write_report
     base_path = args.base if Path(args.base).exists() else None
     out = check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
     for suffix in (".png", ".json"):  # the report beside the profile is an output too

@@ -32,7 +32,7 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.spikefile import LAYOUTS
+    from sensor.io.spikefile import LAYOUTS
     layouts = "\n".join(f"  {name:<11} {desc}" for name, desc in LAYOUTS.items())
     p = sub.add_parser("convert", help=HELP, description=DESCRIPTION.format(layouts=layouts), epilog=EXAMPLES,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -52,8 +52,8 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
             h5_encoding: str = "packbits-little", overwrite: bool = False) -> dict:
     """Convert one spike file; returns a summary dict. Errors are :class:`sensor.errors.InputError`."""
     from sensor.errors import InputError, SpikeFileError
-    from sensor.fileio import provenance
-    from sensor.spikefile import read_spikes_with_meta, write_dat, write_h5, write_spikes
+    from sensor.io.fileio import provenance
+    from sensor.io.spikefile import read_spikes_with_meta, write_dat, write_h5, write_spikes
     from sensor.units import INTERVAL_S
 
     src, dst = Path(input_path), Path(output_path)

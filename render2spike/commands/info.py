@@ -31,7 +31,7 @@ def describe(path, height=250, width=400, raw=False) -> dict:
     from sensor.profile import SensorProfile, bundled_profiles
     p = Path(path)
     if p.is_dir():
-        from sensor.frames import read_frames
+        from sensor.io.frames import read_frames
         fs = read_frames(p)
         fr = fs.read(0)
         t = fs.times_s
@@ -47,7 +47,7 @@ def describe(path, height=250, width=400, raw=False) -> dict:
     if not p.exists():
         raise InputError("does not exist", path=p)
     if p.suffix == ".dat":
-        from sensor.spikefile import dat_frame_count, read_dat
+        from sensor.io.spikefile import dat_frame_count, read_dat
         w = 416 if raw else width
         n = dat_frame_count(p, height, w)
         s = read_dat(p, height, w, drop_columns=16 if raw else 0, count=min(n, 20000))
@@ -66,12 +66,12 @@ def describe(path, height=250, width=400, raw=False) -> dict:
         if fmt == "render2spike-sensor-profile":
             return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}
         if fmt == "render2spike-spikes":
-            from sensor.spikefile import read_spikes
+            from sensor.io.spikefile import read_spikes
             s = read_spikes(p, layout="container")
             return {"kind": "spike container", **{k: v for k, v in meta.items() if k != "format"},
                     "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
         from sensor.errors import SpikeFileError
-        from sensor.spikefile import LAYOUTS, read_spikes, detect_layout
+        from sensor.io.spikefile import LAYOUTS, read_spikes, detect_layout
         try:
             layout = detect_layout(p)
         except SpikeFileError:
@@ -81,7 +81,7 @@ def describe(path, height=250, width=400, raw=False) -> dict:
                 "intervals": s.shape[0], "height": s.shape[1], "width": s.shape[2],
                 "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}
     if p.suffix.lower() in (".h5", ".hdf5"):
-        from sensor.spikefile import read_spikes_with_meta
+        from sensor.io.spikefile import read_spikes_with_meta
         s, meta = read_spikes_with_meta(p, layout="h5")
         return {"kind": "HDF5 spike file", **{k: v for k, v in meta.items() if k not in ("provenance",)},
                 "mean_spike_rate_per_interval": float(s.mean()) if s.size else 0.0}

@@ -53,9 +53,9 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.models import MODELS
-    from sensor.realism import DEFAULT_MODELS
-    from sensor.spikefile import LAYOUTS
+    from sensor.models.step import MODELS
+    from sensor.analysis.realism import DEFAULT_MODELS
+    from sensor.io.spikefile import LAYOUTS
     p = sub.add_parser("realism", help=HELP, description=DESCRIPTION.format(models=", ".join(MODELS)),
                        epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recording", metavar="RECORDING", help="real spike recording (.npz, .dat, .h5)")
@@ -94,8 +94,8 @@ def run(args) -> int:
     from render2spike.commands.simulate import fit_profile
     from sensor.errors import InputError
     from sensor.profile import SensorProfile
-    from sensor.realism import parse_models, realism, supports_reset, write_report
-    from sensor.spikefile import read_spikes_with_meta
+    from sensor.analysis.realism import parse_models, realism, supports_reset, write_report
+    from sensor.io.spikefile import read_spikes_with_meta
 
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
@@ -157,7 +157,7 @@ def run(args) -> int:
 
 def add_fit(result, spikes, base, profile, specs, out, args, say) -> None:
     """Fit dark rate and threshold, write DIR/fitted_profile.npz, add the fitted elssim models to ``result``."""
-    from sensor.realism import add_fitted_models, fit_profile as fit, scaled_profile
+    from sensor.analysis.realism import add_fitted_models, fit_profile as fit, scaled_profile
     say(f"fitting dark rate and threshold of elssim (reset {getattr(profile, 'reset', 'interval')}) to the recording")
     f = fit(spikes, profile, seed=args.seed, n_seeds=args.fit_seeds, n_pixels=args.fit_pixels,
             segments=args.segments, alpha=args.alpha, progress=say)

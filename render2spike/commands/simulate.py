@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sensor.buffers import RecyclingPool
+from sensor.io.buffers import RecyclingPool
 
 HELP = "simulate a spike stream from irradiance frames or a photoelectron-rate array"
 DESCRIPTION = """\
@@ -46,7 +46,7 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.models import MODELS
+    from sensor.models.step import MODELS
     from sensor.profile import RESETS
 
     from render2spike.commands._common import add_overwrite
@@ -175,7 +175,7 @@ def _stored_member_map(path: Path, name: str):
 
 
 class _ChunkPool(RecyclingPool):
-    """Float32 chunk arrays recycled once nobody else holds them (:class:`sensor.buffers.RecyclingPool`):
+    """Float32 chunk arrays recycled once nobody else holds them (:class:`sensor.io.buffers.RecyclingPool`):
     chunks of one input share a shape, so the reader takes back an array the simulator has dropped."""
 
     def __init__(self, keep: int = 6):
@@ -203,7 +203,7 @@ class RateSource:
         self._pool = _ChunkPool()
         self.rate = None
         if self.path.is_dir():
-            from sensor.frames import read_frames
+            from sensor.io.frames import read_frames
             self.frames = read_frames(self.path)
             self.kind = "frames"
             self.shape = self.frames.shape
@@ -324,7 +324,7 @@ class RateSource:
         """Rows [i, j) as rate_e float32 (n, H, W), checked. ``head``: rows already read that repeat
         just before ``i`` (the overlap of block-aligned reads); they are copied in front."""
         from sensor.errors import InputError
-        from sensor.fastio import count_bad
+        from sensor.io.fastio import count_bad
         from sensor.rates import check_rates
         ov = 0 if head is None else head.shape[0]
         if self.kind == "frames":
@@ -461,7 +461,7 @@ def run(args) -> int:
 def _run(args, frozen: dict) -> int:
     from tqdm import tqdm
 
-    from sensor.spikefile import SpikeWriter
+    from sensor.io.spikefile import SpikeWriter
 
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else print
@@ -502,7 +502,7 @@ RESERVE_MAX_BYTES = 128 << 20
 
 def reserve_count(n_chunks: int, depth: int, chunk_bytes: int) -> int:
     """How many chunk arrays a reader with ``depth`` chunks read ahead has faulted in while the command
-    starts (:meth:`sensor.buffers.RecyclingPool.reserve`), not by the reader beside the running kernel
+    starts (:meth:`sensor.io.buffers.RecyclingPool.reserve`), not by the reader beside the running kernel
     (0.1-0.2 s of CPU over 4 s of frames on the project's VM, where a first touch runs at ~0.4 GB/s).
 
     The run holds ``depth + 3`` at once (the read-ahead, the one in use, the one whose block the simulator

@@ -1,6 +1,6 @@
 """Render a scene to a frames folder: noise budget, adaptive keyframes, resume, lock, progress.
 
-Output (the frame contract of :mod:`sensor.frames`)
+Output (the frame contract of :mod:`sensor.io.frames`)
 ---------------------------------------------------
 ``OUT/frame_TTTTTTTT.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
 ``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``, ``launch``,
@@ -38,7 +38,7 @@ Lock
 ----
 While rendering, ``OUT/.render2spike.lock`` names the writer (pid, host, start
 time); a second render into the same folder is refused with that name, and a
-lock left by a dead process is taken over (:mod:`sensor.lock`). Unfinished temp
+lock left by a dead process is taken over (:mod:`sensor.io.lock`). Unfinished temp
 files of killed writers are swept on start.
 """
 
@@ -54,9 +54,9 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import json_bytes, provenance, write_bytes_atomic, write_json_atomic
-from sensor.frames import MANIFEST_NAME, manifest_record, read_frame
-from sensor.lock import FolderLock, sweep_parts
+from sensor.io.fileio import json_bytes, provenance, write_bytes_atomic, write_json_atomic
+from sensor.io.frames import MANIFEST_NAME, manifest_record, read_frame
+from sensor.io.lock import FolderLock, sweep_parts
 
 from . import backend
 from . import frozen as _frozen

@@ -9,7 +9,7 @@ takes ``(path, arrays, header, journal record)`` jobs from a bounded queue
 (at most ``max_pending`` frames wait, so memory stays bounded and a slow disk
 throttles the renderer instead of filling RAM) and, in submission order,
 
-1. writes the frame with :func:`sensor.frames.write_frame` (a temp file beside
+1. writes the frame with :func:`sensor.io.frames.write_frame` (a temp file beside
    the target, then ``os.replace``: nothing half-written is ever at the name);
 2. only then appends the frame's journal line (``on_written``), so a journal
    line always names a complete file and a resumed render is exact.
@@ -27,7 +27,7 @@ no write is in flight when the caller's cleanup runs (the CLI's
 ``remove_live_temps`` after Ctrl-C or SIGTERM); every frame whose render
 finished is then on disk with its journal line. A write that a hard kill cuts
 short leaves only a hidden ``.NAME.part-PID-*`` temp file, which the next
-render sweeps (:func:`sensor.lock.sweep_parts`).
+render sweeps (:func:`sensor.io.lock.sweep_parts`).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class FrameWriter:
         Frames that may wait in the queue (``submit`` blocks beyond that).
     write : callable, optional
         The frame writer, ``write(path, phi, lux, time_s=..., attrs=...)``
-        (default :func:`sensor.frames.write_frame`; tests inject failures here).
+        (default :func:`sensor.io.frames.write_frame`; tests inject failures here).
     on_stop : callable() -> None, optional
         Called in the writer thread after the last queued frame, once :meth:`stop` or
         :meth:`close` asked it to end, unless an error stopped it (the render job closes, and
@@ -61,7 +61,7 @@ class FrameWriter:
 
     def __init__(self, on_written=None, max_pending: int = 2, write=None, on_stop=None):
         if write is None:
-            from sensor.frames import write_frame as write
+            from sensor.io.frames import write_frame as write
         self._write = write
         self._on_written = on_written
         self._on_stop = on_stop

@@ -18,7 +18,7 @@ threshold, as in the stationary state. Pixels below it are counted as
 
 Model specs
 -----------
-``ideal``, ``isi``, ``elssim`` (``sensor.models.MODELS``), optionally
+``ideal``, ``isi``, ``elssim`` (``sensor.models.step.MODELS``), optionally
 ``MODEL:RESET`` with a pixel-reset option of the sensor profile
 (``elssim:crossing``: ``profile.replace(reset="crossing")``; ``elssim:interval``:
 Algorithm 2 as published). A bare model name follows the profile's own reset
@@ -40,7 +40,7 @@ NOISE_FREE_LABEL = "noise-free window average"
 
 def parse_model_spec(spec: str) -> tuple[str, str | None]:
     """``elssim`` -> ("elssim", None); ``elssim:crossing`` -> ("elssim", "crossing"). Validated."""
-    from sensor.models import MODELS
+    from sensor.models.step import MODELS
     model, _, reset = str(spec).strip().partition(":")
     if model not in MODELS:
         raise UnknownMethodError("spike model", model, tuple(MODELS) + ("MODEL:RESET",))
@@ -210,7 +210,7 @@ def write_csv(path, rows: list[dict]):
     """Rows (dicts with the same keys) to CSV, atomically."""
     import csv
     import io
-    from sensor.fileio import write_text_atomic
+    from sensor.io.fileio import write_text_atomic
     buf = io.StringIO()
     fields = list(rows[0].keys()) if rows else []
     for r in rows:
@@ -224,7 +224,7 @@ def write_csv(path, rows: list[dict]):
 def save_figure(fig, path):
     """Save a matplotlib figure atomically as PNG and close it."""
     import matplotlib.pyplot as plt
-    from sensor.fileio import atomic_path
+    from sensor.io.fileio import atomic_path
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)

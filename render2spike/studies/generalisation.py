@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import provenance, write_json_atomic, write_text_atomic
 
 from .common import parse_model_spec, profile_for, pyplot, save_figure, write_csv
 
@@ -56,7 +56,7 @@ def split_samples(folders: list, test_fraction: float) -> tuple[list, list]:
 
 def _dataset(folders, model_spec, profile, crop, seed, warmup, stride=None, include_spikes=False):
     from recon.datasets import RenderedDataset
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     model, _ = parse_model_spec(model_spec)
     shape = read_frames(folders[0]).shape
     prof = profile_for(profile, shape, model_spec)

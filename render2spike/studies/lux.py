@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import DependencyError, InputError
-from sensor.fileio import provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import provenance, write_json_atomic, write_text_atomic
 
 from .common import (DEFAULT_PREROLL, MIN_LIGHT_SPIKES, NOISE_FREE_LABEL, clean_image, clean_window_average,
                      load_study_models, parse_model_spec, parse_study_methods, profile_for, pyplot,
@@ -64,7 +64,7 @@ class SweepJob:
 
 def reference_lux_of(frames_folder) -> float:
     """The scene illuminance [lux] the frames were rendered at (``illuminance_lux`` in the manifest)."""
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     fs = read_frames(frames_folder)
     for key in ("illuminance_lux", "target_lux"):
         if key in fs.manifest:
@@ -79,7 +79,7 @@ def reference_lux_of(frames_folder) -> float:
 
 @functools.lru_cache(maxsize=4)
 def _frames(folder: str):
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     fs = read_frames(folder)
     return fs.phi_stack().astype(np.float32), np.asarray(fs.times_s, np.float64), fs.shape
 
@@ -89,6 +89,7 @@ def run_job(job: SweepJob) -> list[dict]:
     from recon.evaluate import psnr_ssim
 
     from sensor import photoelectron_rate
+
 
     t0 = time.perf_counter()
     phi, t, shape = _frames(job.frames)
@@ -125,7 +126,7 @@ def run_job(job: SweepJob) -> list[dict]:
 def plan_lux_sweep(frames, lux_values, models, seeds, *, profile="vidar-default", window=320, n_centers=3,
                    methods=("tfp", "tfp-dt", "tfp-dt-denoised"), reference_lux=None, preroll: int = DEFAULT_PREROLL) -> list[SweepJob]:
     """The jobs of a lux sweep (validated; nothing is simulated yet)."""
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     from sensor.profile import SensorProfile
     from sensor.rates import n_intervals_spanned
     fs = read_frames(frames)

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.fileio import provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import provenance, write_json_atomic, write_text_atomic
 
 from .common import (DEFAULT_PREROLL, NOISE_FREE_LABEL, nanmean, clean_image, clean_window_average, load_study_models,
                      parse_model_spec, parse_study_methods, profile_for, pyplot, reconstruct_all, save_figure,
@@ -206,7 +206,7 @@ def run_motion_study(scene, param: str, values, out, *, methods="tfp,tfp-dt,tfp-
 
     from render2spike.render.scene import load_scene
     from sensor import photoelectron_rate
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     from sensor.rates import n_intervals_spanned
 
     out = Path(out)

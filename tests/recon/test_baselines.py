@@ -40,7 +40,7 @@ def test_sigma_table_errors(tmp_path):
 def test_smooth_rate_keeps_hot_pixels_out_and_each_pixels_dark_level():
     prof = SensorProfile.synthetic(16, 16, threshold_e=100.0, dark_rate=0.01, dark_rate_spread=0.5,
                                    hot_pixel_fraction=0.02, seed=3)
-    from sensor.effects import dark_event_probability
+    from sensor.models.effects import dark_event_probability
     p = dark_event_probability(prof.dark_rate)
     rate = p + 0.05  # uniform excess over each pixel's own dark level
     rate = np.where(prof.hot_mask, 0.9, rate)  # hot pixels fire far more

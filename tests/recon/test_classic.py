@@ -72,7 +72,7 @@ def test_invert_renewal_rate_round_trip():
 
 
 def test_renewal_rate_matches_direct_summation_of_the_isi_law():
-    from sensor import theory  # isi_moments sums S(n) term by term: an independent route to the same number
+    from sensor.analysis import theory  # isi_moments sums S(n) term by term: an independent route to the same number
     lam = np.array([2.0, 20.0, 120.0])
     direct = [1.0 / theory.isi_moments(x, 200, 0.001, 0.004)[0] for x in lam]
     np.testing.assert_allclose(renewal_spike_rate(lam, 200, 0.004, 0.001), direct, rtol=1e-7)
@@ -116,7 +116,7 @@ def test_tfp_deadtime_shape_check():
 def test_tfp_deadtime_unbiased_for_the_crossing_reset(z):
     """Constant light on a crossing-reset sensor (the vidar-default reset) with PRNU and dark events.
 
-    The inversion uses ``sensor.theory.crossing_rates`` (tabulated in lam / k at the median k and interpolated
+    The inversion uses ``sensor.analysis.theory.crossing_rates`` (tabulated in lam / k at the median k and interpolated
     between dark rates). Statistics as in the interval-reset test above: SE from the spread of the per-pixel
     estimates, plus 2 lam / count for the start-up and Jensen terms. Plain TFP * theta misses by far more
     (dark spikes, refractory loss).

@@ -221,7 +221,7 @@ def test_reconstruct_and_evaluate_the_uhsr_recording(tmp_path, capsys):
 
     from recon.classic import tfp
     from recon.nets import RSIRConfig, RSIRNet, save_checkpoint
-    from sensor.spikefile import read_spikes
+    from sensor.io.spikefile import read_spikes
     cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=1, heads=2, attn_window=4, nim_width=8, mask_width=8,
                           normalise="mean", cumulative=True, linearise=True)
     ck = save_checkpoint(tmp_path / "m.pt", RSIRNet(cfg))

@@ -71,7 +71,7 @@ def test_adaptive_render_static_vs_moving(tmp_path, write_scene):
     from render2spike.render.job import render_scene
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
 
     tol = 0.3
     objs = lambda v: [  # noqa: E731

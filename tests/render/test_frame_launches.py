@@ -152,7 +152,7 @@ def test_writer_on_stop_is_skipped_after_an_error_and_its_own_error_is_raised(tm
 
 
 def test_write_json_atomic_writes_the_indented_text_with_the_usual_permissions(tmp_path):
-    from sensor.fileio import write_json_atomic
+    from sensor.io.fileio import write_json_atomic
     obj = {"a": [1, 2.5, None], "b": {"c": "é"}, "d": np.float64(0.1), "e": np.arange(3)}
     p = write_json_atomic(tmp_path / "x.json", obj)
     want = json.dumps({"a": [1, 2.5, None], "b": {"c": "é"}, "d": 0.1, "e": [0, 1, 2]}, indent=2) + "\n"
@@ -198,7 +198,7 @@ def test_render_job_reuses_the_pilot_render_for_its_first_verification_only_with
     else:
         assert extra == 1 and per_frame == 1
     # the first frame carries a measured ratio either way
-    from sensor.frames import read_frame
+    from sensor.io.frames import read_frame
     assert np.isfinite(read_frame(tmp_path / "out" / ratios[0]["file"]).header["render_noise_ratio"])
 
 

@@ -299,7 +299,7 @@ def test_render_job_records_the_launch_and_resumes_only_with_it(tmp_path, write_
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     _collect()
     sc = load_scene(write_scene(), ["render.spp=4"])
     res = render_scene(sc, tmp_path / "f", progress=False, log=lambda *a: None, launch="frozen")

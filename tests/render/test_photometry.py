@@ -48,7 +48,7 @@ def expected_e_per_lux(qe, step_nm=None):
 def test_lambertian_plane_E_and_Phi(tmp_path, write_scene, z, launch):
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
 
     sc = load_scene(write_scene(), ["render.spp=64"])
     res = render_scene(sc, tmp_path / "frames", progress=False, log=lambda *a: None, launch=launch)

@@ -49,7 +49,7 @@ def _cli(*args, **kw):
 
 
 def _frames(folder):
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     seq = read_frames(folder)
     return [(f["file"], f["time_s"]) for f in seq.manifest["frames"]], [seq.read(i) for i in range(len(seq))]
 
@@ -156,7 +156,7 @@ def two_runs(tmp_path_factory):
 
 
 def test_two_runs_give_identical_frames_and_spikes(two_runs):
-    from sensor.spikefile import read_spikes
+    from sensor.io.spikefile import read_spikes
     _, (a, b) = two_runs
     ma = json.loads((a / "frames" / "frames.json").read_text())
     mb = json.loads((b / "frames" / "frames.json").read_text())
@@ -175,7 +175,7 @@ def test_killed_and_resumed_render_is_byte_identical(two_runs, tmp_path, monkeyp
     from render2spike.render import renderer as rmod
     from render2spike.render.job import load_state, render_scene
     from render2spike.render.scene import load_scene
-    from sensor.spikefile import read_spikes
+    from sensor.io.spikefile import read_spikes
 
     scene, (a, _) = two_runs
     out = tmp_path / "frames"
@@ -231,13 +231,13 @@ def test_second_render_into_a_locked_folder_is_refused(two_runs, tmp_path, monke
     assert seen["rc"] == 2, seen["err"]
     assert f"pid {os.getpid()}" in seen["err"] and "already writing" in seen["err"]
     assert "Traceback" not in seen["err"] and len(seen["err"].strip().splitlines()) == 1
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     seq = read_frames(out)
     assert {seq.read(i).header["target_lux"] for i in range(len(seq))} == {100.0}
 
 
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
-    from sensor.lock import LOCK_NAME, FolderLock, holder, sweep_parts
+    from sensor.io.lock import LOCK_NAME, FolderLock, holder, sweep_parts
     import socket
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()

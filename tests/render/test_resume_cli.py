@@ -48,7 +48,7 @@ def test_resume_after_interrupt(tmp_path, write_scene, monkeypatch):
     res2 = render_scene(load_scene(p, ["render.spp=8"], lux=7.0), out, overwrite=True, progress=False,
                         log=lambda *a: None)
     assert res2.n_rendered == 5
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     seq = read_frames(out)
     assert {seq.read(i).header["target_lux"] for i in range(len(seq))} == {7.0}  # never mixed
 

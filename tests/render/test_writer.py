@@ -25,7 +25,7 @@ def _arrays(i, shape=(4, 6)):
 
 
 def test_frames_written_in_order_and_journalled_after_the_file(tmp_path):
-    from sensor.frames import read_frame
+    from sensor.io.frames import read_frame
     seen = []
 
     def journal(rec):  # writer thread: the file must already be complete under its final name
@@ -44,7 +44,7 @@ def test_frames_written_in_order_and_journalled_after_the_file(tmp_path):
 def test_an_error_in_the_writer_surfaces_in_the_calling_thread(tmp_path):
     """The first failure stops the writer; later frames are neither written nor journalled; the caller gets it."""
     from sensor.errors import DiskFullError
-    from sensor.fileio import atomic_path
+    from sensor.io.fileio import atomic_path
     journal = []
     boom = DiskFullError("disk full while writing f2.exr", path=tmp_path / "f2.exr")
 
@@ -90,7 +90,7 @@ def _scene(tmp_path, duration_s=0.02) -> Path:
 
 
 def _same(a: Path, b: Path):
-    from sensor.frames import read_frames
+    from sensor.io.frames import read_frames
     sa, sb = read_frames(a), read_frames(b)
     assert [f["file"] for f in sa.manifest["frames"]] == [f["file"] for f in sb.manifest["frames"]]
     for i in range(len(sa)):
@@ -105,7 +105,7 @@ def test_render_stops_on_a_write_error_and_resumes_exactly(tmp_path, monkeypatch
     from render2spike.render import writer as wmod
     from render2spike.render.job import load_state, render_scene
     from render2spike.render.scene import load_scene
-    from sensor.frames import write_frame
+    from sensor.io.frames import write_frame
     p = _scene(tmp_path)
     log = lambda *a: None  # noqa: E731
     ref = render_scene(load_scene(p), tmp_path / "ref", progress=False, log=log)
@@ -170,7 +170,7 @@ def test_killed_render_leaves_complete_journalled_frames_and_resumes(tmp_path, s
     SIGTERM also leaves no temp file and exits 143, and the rerun gives the uninterrupted render's frames."""
     from render2spike.render.job import load_state, render_scene
     from render2spike.render.scene import load_scene
-    from sensor.frames import read_frame
+    from sensor.io.frames import read_frame
     p = _scene(tmp_path, duration_s=0.1)  # 21 frames
     ref = render_scene(load_scene(p), tmp_path / "ref", progress=False, log=lambda *a: None)
     out = tmp_path / "out"

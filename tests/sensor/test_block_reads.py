@@ -9,7 +9,7 @@ import pytest
 import sensor
 from render2spike.cli import main
 from render2spike.commands.simulate import RateSource, plan_reads
-from sensor.fastio import count_bad, scale_checked
+from sensor.io.fastio import count_bad, scale_checked
 from sensor.rates import RateSchedule, block_keyframe_rows
 from sensor.units import photoelectron_rate, photoelectron_scale
 
@@ -104,7 +104,7 @@ def test_block_aligned_chunks_give_the_same_spikes_and_are_never_joined(name):
         got += list(sim.iter_feed_packed(rate[i:j].copy(), t[i:j], owned=True, overlap=ov))
         end = j
     got.append(sim.finish_packed())
-    spikes = sensor.spikefile.unpack_frames(np.concatenate(got), prof.shape)
+    spikes = sensor.io.spikefile.unpack_frames(np.concatenate(got), prof.shape)
     np.testing.assert_array_equal(spikes, whole)
     assert all(b is None for b in sim.schedule._scratch_pair)  # no block's keyframes were ever joined from two chunks
 
@@ -201,12 +201,12 @@ def test_read_scaled_checks_the_layout_of_every_frame_not_only_the_first(tmp_pat
     else:
         struct.pack_into("<i", data, first + 4, 12)
     seq.path(1).write_bytes(bytes(data))
-    from sensor.fastio import exr_scale_checked
-    from sensor.frames import _exr_header, _exr_views
+    from sensor.io.fastio import exr_scale_checked
+    from sensor.io.frames import _exr_header, _exr_views
     hdr = _exr_header(data, "Phi")
     table, heads, src = _exr_views(data, hdr)
     assert exr_scale_checked(table, heads, src, first, 8 + hdr[4], hdr[3], hdr[4], scale, out) == -1  # refused
-    intact = bytearray(sensor.frames.Path(seq.path(0)).read_bytes())
+    intact = bytearray(sensor.io.frames.Path(seq.path(0)).read_bytes())
     table, heads, src = _exr_views(intact, hdr)
     assert exr_scale_checked(table, heads, src, first, 8 + hdr[4], hdr[3], hdr[4], scale, out) == 0
     try:

@@ -1,7 +1,7 @@
 """Round trip: simulate dark and flat recordings from a profile with planted maps, calibrate, recover the maps.
 
 Tolerances are standard errors computed from the true parameters with the
-renewal theory of :mod:`sensor.theory`, times a Bonferroni z over the pixels
+renewal theory of :mod:`sensor.analysis.theory`, times a Bonferroni z over the pixels
 checked (family-wise false-failure probability 1e-3).
 """
 
@@ -10,9 +10,9 @@ import pytest
 from scipy import stats
 
 import sensor
-from sensor import theory
-from sensor.calibration import calibrate
-from sensor.effects import count_threshold
+from sensor.analysis import theory
+from sensor.calibration.estimate import calibrate
+from sensor.models.effects import count_threshold
 
 H, W, T_DARK, N_DARK, T_FLAT = 24, 32, 20000, 4, 20000
 LEVELS = (2.0, 6.0, 15.0)  # e- per interval

@@ -18,9 +18,9 @@ import pytest
 from scipy import stats
 
 import sensor
-from sensor.calibration import calibrate
-from sensor.effects import count_threshold
-from sensor.vidar import VIDAR_SYNTHETIC
+from sensor.calibration.estimate import calibrate
+from sensor.models.effects import count_threshold
+from sensor.calibration.vidar import VIDAR_SYNTHETIC
 
 S_TRUE = 200.0  # planted photoelectrons per lux per interval (a gain-1 pixel)
 LUX = (0.5, 1.5, 3.0, 5.0)  # 100 .. 1000 e-/interval: 0.05 .. 0.5 spikes per interval
@@ -127,7 +127,7 @@ def test_warns_when_only_staircase_levels(capsys):
 @pytest.mark.parametrize("reset", ["interval", "crossing"])
 def test_invert_rate_round_trips_any_shape(reset):
     """The exact rate-vs-light inversion returns the light it was given, for (H, W) as for flat inputs."""
-    from sensor.flatfield import invert_rate, spike_rate
+    from sensor.calibration.flatfield import invert_rate, spike_rate
     x = np.array([[0.02, 0.05], [0.1, 0.3]])  # thresholds per interval (off the interval staircase for k = 100)
     k = np.full((2, 2), 100.0)
     mu = np.full((2, 2), 0.004)

@@ -2,7 +2,7 @@
 
 Every stochastic test has a fixed seed; tolerances are standard errors of the
 quantity tested (derived next to each) times ``Z`` = 3.9, or a Bonferroni z. The
-oracles come from :mod:`sensor.theory` (section "The crossing reset"): the
+oracles come from :mod:`sensor.analysis.theory` (section "The crossing reset"): the
 renewal law of the continuous-time firings and the exact phase chain of the
 read-out (f = 0, no dark). They run on both implementations.
 """
@@ -15,7 +15,7 @@ import pytest
 from scipy import stats
 
 import sensor
-from sensor import theory
+from sensor.analysis import theory
 from sensor.profile import PROFILE_VERSION, RESETS
 
 from ..conftest import Z
@@ -82,11 +82,11 @@ def test_info_command_shows_the_reset(tmp_path, capsys):
 
 
 def test_elssim_follows_the_profile_reset():
-    from sensor.models import ELSSimCrossingStep, ELSSimStep, get_model
+    from sensor.models.step import ELSSimCrossingStep, ELSSimStep, get_model
     p = crossing_profile(2, 8, 20.0)
     assert isinstance(get_model("elssim", p, "reference"), ELSSimCrossingStep)
     assert isinstance(get_model("elssim", p.replace(reset="interval"), "reference"), ELSSimStep)
-    from sensor import fast
+    from sensor.models import fast
     if fast.HAVE_NUMBA:
         assert isinstance(get_model("elssim", p, "fast"), fast.ELSSimCrossingFast)
         assert isinstance(get_model("elssim", p.replace(reset="interval"), "fast"), fast.ELSSimFast)
@@ -106,7 +106,7 @@ def test_simulate_cli_reset_option_overrides_the_profile(tmp_path):
         out = tmp_path / f"{reset}.npz"
         assert main(["simulate", str(tmp_path / "rate.npy"), "--out", str(out), "--profile", str(prof_path),
                      "--reset", reset, "--quiet", "--seed", "2"]) == 0
-        from sensor.spikefile import read_spikes_with_meta
+        from sensor.io.spikefile import read_spikes_with_meta
         spikes, meta = read_spikes_with_meta(out)
         np.testing.assert_array_equal(spikes, sensor.simulate(rate, prof.replace(reset=reset), seed=2))
         assert meta["simulator"]["reset"] == reset
@@ -205,7 +205,7 @@ def test_window_count_fano_factor_matches_the_phase_chain(impl, slow_scale):
 # ------------------------------------------------------------------------------------------ ISI laws
 def test_continuous_time_isi_law_is_blind_time_plus_gamma_or_dark():
     # the reference records its exact firing times: inter-firing times are f + min(Gamma(k, lam), Exp(mu)), iid
-    from sensor.models import ELSSimCrossingStep
+    from sensor.models.step import ELSSimCrossingStep
     k, lam, f, mu = 12, 4.0, 0.3, 0.05
     H, W, T = 12, 12, 600
     prof = crossing_profile(H, W, float(k), refractory_s=f * sensor.INTERVAL_S, dark_rate=mu)
@@ -441,7 +441,7 @@ def test_vidar_default_uses_the_crossing_reset_and_says_why():
 
 
 def test_excess_lag1_is_zero_for_a_renewal_stream_and_negative_for_the_crossing_reset():
-    from sensor.vidar import lag1_isi_correlation_by_mean_isi
+    from sensor.calibration.vidar import lag1_isi_correlation_by_mean_isi
     k, lam, T = 300, 300 / 14.4, 200  # ~13 ISIs per pixel: the plain estimate is biased by about -1/13
     out = {}
     for reset in RESETS:
@@ -459,7 +459,7 @@ def test_real_recording_supports_the_crossing_reset():
     path = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real" / "uhsr.npz"
     if not path.exists():
         pytest.skip("real recording ../shared/data/real/uhsr.npz not present")
-    from sensor.vidar import reset_evidence
+    from sensor.calibration.vidar import reset_evidence
     rec = np.load(path)["spk"][:, :100, :100]
     ev = reset_evidence(rec, seed=0, edges=(10.0, 20.0))
     real, iv, cr = ev["real"][0], ev["interval"][0], ev["crossing"][0]

@@ -26,16 +26,16 @@ import pytest
 from scipy import stats
 
 import sensor
-from sensor import theory
-from sensor.effects import count_threshold
-from sensor.models import block_generator, get_model
+from sensor.analysis import theory
+from sensor.models.effects import count_threshold
+from sensor.models.step import block_generator, get_model
 from sensor.rates import RateSchedule, Segments, interval_rates
-from sensor.simulate import pack_frames, unpack_frames
+from sensor.simulator import pack_frames, unpack_frames
 from sensor.units import INTERVAL_S
 
 from ..conftest import Z
 
-fast = pytest.importorskip("sensor.fast")
+fast = pytest.importorskip("sensor.models.fast")
 if not fast.HAVE_NUMBA:  # pragma: no cover
     pytest.skip("numba missing: the fast path falls back to the reference", allow_module_level=True)
 

@@ -8,7 +8,7 @@ import pytest
 import sensor
 from sensor import units
 from sensor.rates import hat_interval_weights, interval_rates, n_intervals_spanned
-from sensor.spikefile import SpikeWriter, dat_frame_count, pack_dat_frames
+from sensor.io.spikefile import SpikeWriter, dat_frame_count, pack_dat_frames
 
 
 # --------------------------------------------------------------------------- .dat

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sensor import frames as F
-from sensor.frames import read_frame, read_phi, write_frame
+from sensor.io import frames as F
+from sensor.io.frames import read_frame, read_phi, write_frame
 
 OpenEXR = pytest.importorskip("OpenEXR")
 
@@ -103,8 +103,8 @@ def test_write_bytes_atomic_names_permissions_and_sweep_pattern(tmp_path, monkey
     import os
     import re
 
-    from sensor import fileio
-    from sensor.lock import _PART_RE
+    from sensor.io import fileio
+    from sensor.io.lock import _PART_RE
     made = []
     real_open = os.open
 
@@ -124,7 +124,7 @@ def test_write_bytes_atomic_names_permissions_and_sweep_pattern(tmp_path, monkey
 def test_write_bytes_atomic_skips_a_taken_temp_name(tmp_path, monkeypatch):
     import os
 
-    from sensor import fileio
+    from sensor.io import fileio
     n = next(fileio._TMP_NUMBERS) + 1
     stale = tmp_path / f".f.part-{os.getpid()}-{n}.exr"  # a dead process of the same pid left this
     stale.write_bytes(b"old")
@@ -135,7 +135,7 @@ def test_write_bytes_atomic_skips_a_taken_temp_name(tmp_path, monkeypatch):
 def test_write_bytes_atomic_failure_leaves_nothing_and_disk_full_names_the_file(tmp_path, monkeypatch):
     import errno
 
-    from sensor import fileio
+    from sensor.io import fileio
     from sensor.errors import DiskFullError
     (tmp_path / "f.exr").write_bytes(b"previous")
 
@@ -187,7 +187,7 @@ def test_the_encoders_reused_header_pieces_give_each_frame_its_own_bytes(tmp_pat
 def test_write_bytes_atomic_takes_a_trailing_separator_as_pathlib_does(tmp_path):
     import os
 
-    from sensor import fileio
+    from sensor.io import fileio
     out = fileio.write_bytes_atomic(str(tmp_path / "f.exr") + os.sep, b"abc")
     assert out == tmp_path / "f.exr" and (tmp_path / "f.exr").read_bytes() == b"abc"
     assert [p.name for p in tmp_path.iterdir()] == ["f.exr"] and not fileio._LIVE_TEMPS
@@ -196,7 +196,7 @@ def test_write_bytes_atomic_takes_a_trailing_separator_as_pathlib_does(tmp_path)
 def test_write_bytes_atomic_interrupted_right_after_creating_the_temp_file_leaves_it_findable(tmp_path, monkeypatch):
     import os
 
-    from sensor import fileio
+    from sensor.io import fileio
     real_open = os.open
 
     def open_then_interrupt(*a, **k):

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import sensor
-import sensor.fast as fast
-from sensor.models import block_generator, get_model
+import sensor.models.fast as fast
+from sensor.models.step import block_generator, get_model
 from sensor.rates import Segments
-from sensor.spikefile import unpack_frames
+from sensor.io.spikefile import unpack_frames
 
 pytestmark = pytest.mark.skipif(not fast.HAVE_NUMBA, reason="lookahead is a feature of the fast kernels")
 

@@ -12,8 +12,8 @@ import pytest
 from scipy import stats
 
 import sensor
-from sensor import theory
-from sensor.effects import count_threshold
+from sensor.analysis import theory
+from sensor.models.effects import count_threshold
 from sensor.units import TIME_UNIT_S
 
 from ..conftest import Z

@@ -3,7 +3,7 @@
 import numpy as np
 
 import sensor
-from sensor.realism import fit_profile, scaled_profile
+from sensor.analysis.realism import fit_profile, scaled_profile
 
 TRUE_THETA, TRUE_DARK = 200.0, 0.01  # [e-], [dark events per interval]
 

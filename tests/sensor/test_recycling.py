@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import sensor
-from sensor.buffers import RecyclingPool
-from sensor.spikefile import SpikeWriter, pack_dat_frames
-from sensor.frames import FrameSequence
+from sensor.io.buffers import RecyclingPool
+from sensor.io.spikefile import SpikeWriter, pack_dat_frames
+from sensor.io.frames import FrameSequence
 from sensor.units import photoelectron_scale
 
 OpenEXR = pytest.importorskip("OpenEXR")
@@ -31,7 +31,7 @@ def test_pool_recycles_only_arrays_nobody_holds_and_counts_it():
 
 def test_reserved_arrays_are_faulted_in_and_handed_out_only_once_written(monkeypatch):
     import threading
-    from sensor import buffers
+    from sensor.io import buffers
     gate, started = threading.Event(), threading.Event()
     real = buffers._fault_in
 
@@ -102,7 +102,7 @@ def test_blocks_written_into_recycled_memory_are_the_fresh_blocks(stream):
 
 def test_run_segments_clears_a_dirty_out_and_checks_its_shape(stream):
     prof, rate, t = stream
-    from sensor.models import block_generator
+    from sensor.models.step import block_generator
     from sensor.rates import RateSchedule
     sim = sensor.SpikeSimulator(prof, "elssim", seed=3)
     sched = RateSchedule(prof.interval_s)
@@ -201,8 +201,8 @@ def test_a_damaged_frame_in_a_group_raises_what_read_scaled_raises(folder, damag
 def test_the_compiled_group_pass_is_the_numpy_one(folder, monkeypatch):
     """exr_group_scale_checked over the files' bytes: compiled (each scanline's channel a contiguous row) and
     numpy (strided views) give the same values, bad-value counts and refusal, bit for bit."""
-    from sensor import fastio
-    from sensor.frames import _exr_header
+    from sensor.io import fastio
+    from sensor.io.frames import _exr_header
     if not fastio.HAVE_NUMBA:
         pytest.skip("numba is not installed: only the numpy path exists")
     p, scale, phi, t, fr = folder
@@ -237,7 +237,7 @@ def test_the_compiled_group_pass_is_the_numpy_one(folder, monkeypatch):
                                  dict(line=4 * 9 - 4, offset=0)])
 def test_the_group_pass_refuses_a_layout_whose_channel_leaves_its_scanline(bad):
     """The compiled pass trusts the layout (no bounds checks inside): the wrapper refuses one that is not."""
-    from sensor.fastio import exr_group_scale_checked
+    from sensor.io.fastio import exr_group_scale_checked
     lay = dict(pos=0, H=2, W=9, y0=0, line=2 * 9 * 4, offset=9 * 4)
     lay.update(bad)
     buf = np.zeros((1, 4096), np.uint8)
@@ -261,7 +261,7 @@ def test_cli_from_frames_in_groups_gives_the_python_api_spikes(folder, tmp_path)
 # ------------------------------------------------------------------------------------------ direct writes
 @pytest.mark.parametrize("direct", ["1", "0"])
 def test_direct_stream_writes_the_bytes_given_whatever_the_block_sizes(tmp_path, monkeypatch, direct):
-    from sensor.fileio import DirectStream
+    from sensor.io.fileio import DirectStream
     monkeypatch.setenv("RENDER2SPIKE_DIRECT_IO", direct)
     rng = np.random.default_rng(9)
     sizes = [1, 4095, 4096, 4097, 3 << 20, 12345, 0, 2 << 20, 7, 0]  # the staging buffer grows past 1 MiB
@@ -282,7 +282,7 @@ def test_direct_stream_writes_the_bytes_given_whatever_the_block_sizes(tmp_path,
 def test_direct_stream_falls_back_when_a_direct_write_is_refused(tmp_path, monkeypatch):
     import errno
     import os
-    from sensor import fileio
+    from sensor.io import fileio
     f = fileio.DirectStream(tmp_path / "x.bin")
     if not f.direct:
         f.close()
@@ -329,9 +329,9 @@ def test_a_streamed_container_holds_what_the_in_memory_one_holds(tmp_path, expec
         for k in range(0, 70, 30):
             w.write(bits[k:k + 30])
         assert (w._zip is not None) == (expected is not None) and (not w._blocks or expected is None)
-    sensor.spikefile.write_spikes(tmp_path / "ref.npz", bits, **kw)
-    got, meta = sensor.spikefile.read_spikes_with_meta(tmp_path / "s.npz")
-    want, ref = sensor.spikefile.read_spikes_with_meta(tmp_path / "ref.npz")
+    sensor.io.spikefile.write_spikes(tmp_path / "ref.npz", bits, **kw)
+    got, meta = sensor.io.spikefile.read_spikes_with_meta(tmp_path / "s.npz")
+    want, ref = sensor.io.spikefile.read_spikes_with_meta(tmp_path / "ref.npz")
     np.testing.assert_array_equal(got, want)
     for m in (meta, ref):
         m.pop("provenance")
@@ -357,7 +357,7 @@ def test_frames_of_a_layout_not_grouped_are_read_one_at_a_time_once(folder, monk
     each file once."""
     p, scale, phi, t, fr = folder
     seq = sensor.read_frames(fr)
-    import sensor.frames as F
+    import sensor.io.frames as F
     monkeypatch.setattr(F, "_groupable", lambda hdr: False)
     opened = []
     monkeypatch.setattr(F, "_read_files", lambda *a: opened.append(a) or 0)
@@ -368,7 +368,7 @@ def test_frames_of_a_layout_not_grouped_are_read_one_at_a_time_once(folder, monk
 
 def test_a_dat_whose_last_write_fails_leaves_nothing_behind(tmp_path, monkeypatch):
     import errno
-    from sensor import fileio
+    from sensor.io import fileio
     w = SpikeWriter(tmp_path / "s.dat", interval_s=50e-6, model="elssim", profile_id="x", seed=0)
     w.write(np.ones((3, 8, 8), bool))  # 24 bytes: staged, written at close
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from sensor import InputError
-from sensor.calibration import scene_hot_pixels
+from sensor.calibration.estimate import scene_hot_pixels
 
 
 def _scene(seed=0, T=400, H=24, W=30):

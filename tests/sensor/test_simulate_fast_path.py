@@ -11,8 +11,8 @@ import pytest
 import sensor
 from render2spike.cli import build_parser, main, requested_command
 from render2spike.commands.simulate import RateSource
-from sensor.frames import _exr_channel_fast, read_frame, read_phi, write_frame
-from sensor.spikefile import SpikeWriter, count_bits, unpack_frames
+from sensor.io.frames import _exr_channel_fast, read_frame, read_phi, write_frame
+from sensor.io.spikefile import SpikeWriter, count_bits, unpack_frames
 
 ROOT = Path(__file__).resolve().parents[2]
 OpenEXR = pytest.importorskip("OpenEXR")
@@ -127,7 +127,7 @@ def test_a_negative_attribute_size_is_refused_not_walked_forever(tmp_path):
     at = d.find(b"aa\0int\0") + 7
     struct.pack_into("<i", d, at, -(7 + 4))  # back to the start of the same attribute
     (tmp_path / "b.exr").write_bytes(bytes(d))
-    code = ("import sys; from sensor.frames import _exr_header; "
+    code = ("import sys; from sensor.io.frames import _exr_header; "
             f"print(_exr_header(open({str(tmp_path / 'b.exr')!r}, 'rb').read(), 'Phi'))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=str(ROOT), timeout=30,
                        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
@@ -193,7 +193,7 @@ def test_count_bits_any_shape_and_layout(shape):
 def test_flip_rows_counted_is_the_reversed_copy_and_the_bit_count(monkeypatch, shape, compiled):
     """The .dat writer's fused pass: rows reversed per frame and every set bit counted (the 8-byte words
     and the tail bytes: sizes here are and are not multiples of 8), compiled and with numpy alone."""
-    from sensor import fastio
+    from sensor.io import fastio
     if compiled and not fastio.HAVE_NUMBA:
         pytest.skip("numba is not installed")
     monkeypatch.setattr(fastio, "HAVE_NUMBA", compiled)
@@ -214,7 +214,7 @@ def test_dat_writer_bytes_and_count_match_the_numpy_layout(tmp_path, monkeypatch
     """Blocks written to a .dat are :func:`packed_to_dat`'s bytes, back to back, and every spike is counted:
     through the staging buffer (W % 8 == 0; the compiled pass when numba is loaded, numpy when not) and
     the general way (W % 8 != 0)."""
-    from sensor.spikefile import pack_frames, packed_to_dat
+    from sensor.io.spikefile import pack_frames, packed_to_dat
     if numba_loaded:
         pytest.importorskip("numba")  # loaded here, so the writer takes the compiled pass
     else:

@@ -6,7 +6,7 @@ import pytest
 import sensor
 from render2spike.cli import main
 from render2spike.commands.simulate import RESERVE_MAX_BYTES, RateSource, _NpzMember, reserve_count
-from sensor.spikefile import count_bits
+from sensor.io.spikefile import count_bits
 
 
 @pytest.fixture

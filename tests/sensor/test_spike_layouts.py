@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import sensor
-from sensor.spikefile import LAYOUTS, detect_layout, read_spikes_with_meta
+from sensor.io.spikefile import LAYOUTS, detect_layout, read_spikes_with_meta
 
 T, H, W = 11, 3, 8  # T not a multiple of 8 (RSIR's last plane is partial); H*W = 24 (whole .dat bytes)
 

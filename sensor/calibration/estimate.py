@@ -12,12 +12,12 @@ Estimators (see ``docs/sensor.md`` for the derivations and departures):
   ordinary dark events get the population median mu_DC; its hot charge
   (``mu_HP``, ``sigma_HP`` in threshold units per interval) is fitted to the mean
   and variance of its dark inter-spike intervals with the exact numerical
-  first-passage model of the decided reset (:func:`sensor.theory.fit_hot_pixel`
-  with :func:`sensor.theory.hot_pixel_isi_moments` or
-  :func:`sensor.calib_theory.crossing_hot_pixel_isi_moments`), with
+  first-passage model of the decided reset (:func:`sensor.analysis.theory.fit_hot_pixel`
+  with :func:`sensor.analysis.theory.hot_pixel_isi_moments` or
+  :func:`sensor.calibration.theory.crossing_hot_pixel_isi_moments`), with
   delta-method standard errors (:func:`hot_pixel_se`).
 * **Reset, PRNU (Eq. 5), threshold, sensitivity** from the flats
-  (:mod:`sensor.flatfield`): the reset from the lag-1 ISI correlation; each
+  (:mod:`sensor.calibration.flatfield`): the reset from the lag-1 ISI correlation; each
   level's per-pixel rate inverted through the exact rate-vs-light law of that
   reset; gains from a rank-1 fit weighted by the information each (level,
   pixel) carries (levels on the interval reset's staircase get none); the
@@ -40,14 +40,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CalibrationError, InputError
-from .fileio import provenance, write_json_atomic
-from .profile import SensorProfile
-from .spikefile import read_spikes
-from .flatfield import fit_flats, flat_level_stats
-from .calib_theory import crossing_hot_pixel_isi_moments
-from .theory import fit_hot_pixel, hot_pixel_isi_moments
-from .units import per_interval_to_hz
+from sensor.errors import CalibrationError, InputError
+from sensor.io.fileio import provenance, write_json_atomic
+from sensor.profile import SensorProfile
+from sensor.io.spikefile import read_spikes
+from sensor.calibration.flatfield import fit_flats, flat_level_stats
+from sensor.calibration.theory import crossing_hot_pixel_isi_moments
+from sensor.analysis.theory import fit_hot_pixel, hot_pixel_isi_moments
+from sensor.units import per_interval_to_hz
 
 #: default theta_HT [spikes per interval above the median dark rate] (= 400 Hz at 20 kHz)
 DEFAULT_HOT_THRESHOLD = 0.02
@@ -337,7 +337,7 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .fileio import atomic_path
+    from sensor.io.fileio import atomic_path
     out_stem = Path(out_stem)
     jpath = out_stem.with_suffix(".json")
     write_json_atomic(jpath, {"profile": profile.name, **report.to_dict(), "provenance": provenance()})

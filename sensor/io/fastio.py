@@ -96,7 +96,7 @@ def exr_group_scale_checked(buf, pos: int, H: int, W: int, y0: int, line: int, o
                             bad) -> int:
     """:func:`exr_scale_checked` over a group of n frames of one layout in one compiled call, straight from
     the files' bytes: ``buf`` uint8 (n, size) C-contiguous, one whole file per row, laid out as
-    :func:`sensor.frames._exr_header` describes (offset table of H uint64 at byte ``pos``, then H
+    :func:`sensor.io.frames._exr_header` describes (offset table of H uint64 at byte ``pos``, then H
     scanlines of ``8 + line`` bytes, each ``y`` (int32) = ``y0 + r``, data size (int32) = ``line`` and the
     channel's W float32 at byte ``offset`` of the data); ``out`` float32 (n, H, W) and ``bad`` int64 (n,)
     (each frame's count of non-finite or negative values). Frames are done in order; returns the index of
@@ -191,12 +191,12 @@ def flip_rows_counted(bits, dst) -> int:
     Parameters
     ----------
     bits : uint8 array (n, H, Wb), C-contiguous
-        Packed frames, rows top-down (:func:`sensor.spikefile.pack_frames` with W = 8 * Wb).
+        Packed frames, rows top-down (:func:`sensor.io.spikefile.pack_frames` with W = 8 * Wb).
     dst : uint8 array (n, H, Wb), C-contiguous, not overlapping ``bits``
         Destination (e.g. a file stream's staging buffer).
 
     Returns the number of set bits (spikes) in ``bits``. With numpy alone: a strided copy and
-    :func:`sensor.spikefile.count_bits`: two passes, 2.7-3.3 ms for 1000 frames of 250 x 400 against
+    :func:`sensor.io.spikefile.count_bits`: two passes, 2.7-3.3 ms for 1000 frames of 250 x 400 against
     1.75-1.95 ms for the compiled call, which counts 8 bytes at a time while the block is still in cache
     (one process, load ~0.2; ``docs/performance.md``, eighth round)."""
     if bits.ndim != 3 or bits.dtype != np.uint8 or not bits.flags.c_contiguous:
@@ -205,7 +205,7 @@ def flip_rows_counted(bits, dst) -> int:
         raise ValueError(f"dst must be C-contiguous uint8 {bits.shape}; got {dst.dtype} {dst.shape}")
     if HAVE_NUMBA:
         return int(_flip_rows_counted(bits, dst))
-    from sensor.spikefile import count_bits
+    from sensor.io.spikefile import count_bits
     np.copyto(dst, bits[:, ::-1, :])
     return count_bits(bits)
 

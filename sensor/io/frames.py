@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FrameFileError
-from .fileio import atomic_path, provenance, write_bytes_atomic, write_json_atomic
+from sensor.errors import FrameFileError
+from sensor.io.fileio import atomic_path, provenance, write_bytes_atomic, write_json_atomic
 
 MANIFEST_NAME = "frames.json"
 FORMAT_NAME = "render2spike-frames"
@@ -52,7 +52,7 @@ def _openexr():
     try:
         import OpenEXR
     except ImportError as exc:  # pragma: no cover - declared dependency
-        from .errors import DependencyError
+        from sensor.errors import DependencyError
         raise DependencyError("OpenEXR is not installed: run `pip install OpenEXR`") from exc
     return OpenEXR
 
@@ -83,8 +83,8 @@ def write_frame(path, phi, illuminance_lux=None, *, time_s: float, attrs: dict |
     ZIP saved ~2 % of the size for ~3x the write time). It is assembled in memory by
     :func:`_encode_exr` (numpy; the same bytes as the OpenEXR binding writes, header and pixels) and
     written with one ``write`` to a temp name beside ``path``, then renamed
-    (:func:`~sensor.fileio.write_bytes_atomic`); a header that encoder does not handle goes through
-    the OpenEXR binding instead (:func:`~sensor.fileio.atomic_path`). Cost per frame: see
+    (:func:`~sensor.io.fileio.write_bytes_atomic`); a header that encoder does not handle goes through
+    the OpenEXR binding instead (:func:`~sensor.io.fileio.atomic_path`). Cost per frame: see
     ``benchmarks/results/render.md`` ("Frame write").
     """
     phi = np.ascontiguousarray(phi, dtype=np.float32)
@@ -539,10 +539,10 @@ class FrameSequence:
         this sequence keeps and reuses (no fresh memory per frame); while a frame's header equals the
         previous one's but for ``time_s``, its parsed layout is reused, and one compiled pass checks the
         offset table and every scanline's ``y`` and size and scales and checks Phi straight out of the
-        buffer (:func:`sensor.fastio.exr_scale_checked`). Other EXR files go through :meth:`read_phi`.
+        buffer (:func:`sensor.io.fastio.exr_scale_checked`). Other EXR files go through :meth:`read_phi`.
         The buffer makes this method for one thread at a time per sequence.
         """
-        from .fastio import exr_scale_checked, scale_checked
+        from sensor.io.fastio import exr_scale_checked, scale_checked
         path = self.path(i)
         fast, size = None, None
         try:
@@ -604,7 +604,7 @@ class FrameSequence:
         reading each file. Frames are read :attr:`GROUP_FRAMES` at a time into a byte buffer that this
         sequence keeps; the group's headers are compared at once with the last frame's header (all but
         ``time_s``), their times with the manifest's, and one compiled pass checks each file's offset
-        table and scanlines and scales and checks its Phi (:func:`sensor.fastio.exr_group_scale_checked`).
+        table and scanlines and scales and checks its Phi (:func:`sensor.io.fastio.exr_group_scale_checked`).
         A frame that does not fit (another size or layout, unreadable, a bad value or time) goes through
         :meth:`read_scaled`, which reads it or raises its error. One thread at a time per sequence.
         """
@@ -640,7 +640,7 @@ class FrameSequence:
     def _group_pass(self, q: int, n: int, hit: tuple, scale: float, out) -> int:
         """Check and scale the n frames in ``self._group``'s first rows (frames q ..); how many, from the
         first, passed every check (their Phi scaled into ``out``)."""
-        from .fastio import exr_group_scale_checked
+        from sensor.io.fastio import exr_group_scale_checked
         if n == 0:
             return 0
         pre, suf, tat, tend, hend, hdr = hit
@@ -685,7 +685,7 @@ class FrameSequence:
 
 def check_light(arr, path, name: str) -> None:
     """Raise FrameFileError naming ``path``, channel ``name`` and the first pixel that is non-finite or < 0."""
-    from .rates import bad_values
+    from sensor.rates import bad_values
     found = bad_values(arr)
     if found:
         n, idx, v = found
@@ -723,7 +723,7 @@ def read_frames(folder) -> FrameSequence:
     frames = manifest["frames"]
     if not frames:
         raise FrameFileError("manifest lists no frames", path=mpath, field="frames")
-    from .lock import describe, holder
+    from sensor.io.lock import describe, holder
     live = holder(folder)
     if live is not None:
         raise FrameFileError(f"a render is still writing into this folder ({describe(live)}); wait for it to finish",

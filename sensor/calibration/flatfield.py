@@ -3,7 +3,7 @@
 Inputs are per-level statistics of flat recordings (:func:`flat_level_stats`);
 :func:`fit_flats` turns them into the estimates with standard errors. The
 derivations are in ``docs/sensor.md`` ("Absolute calibration") and the exact
-laws in :mod:`sensor.calib_theory`.
+laws in :mod:`sensor.calibration.theory`.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import optimize, special, stats
 
-from . import calib_theory as ct
-from .errors import CalibrationError
-from .theory import renewal_spike_rate
+from sensor.calibration import theory as ct
+from sensor.errors import CalibrationError
+from sensor.analysis.theory import renewal_spike_rate
 
 #: a level informs the PRNU map only where its expected spike count error is at least this many spikes
 #: (below it the read-out is deterministic, e.g. on a plateau of the interval reset's staircase, and the
@@ -521,7 +521,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     """Reset, per-pixel light, PRNU gain, threshold and (with ``flat_lux``) sensitivity from flat levels.
 
     ``reset``: None to decide it from the data, or ``"interval"`` / ``"crossing"``
-    to impose it. Returns a dict of maps and numbers (see :func:`sensor.calibration.calibrate`).
+    to impose it. Returns a dict of maps and numbers (see :func:`sensor.calibration.estimate.calibrate`).
     """
     shape = normal.shape
     nf = normal.reshape(-1)

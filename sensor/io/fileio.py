@@ -49,7 +49,7 @@ def atomic_path(path, suffix: str | None = None):
     ``suffix`` defaults to ``path``'s own suffix, so libraries that infer the
     format from the extension (OpenEXR, numpy, PIL) keep working. The temp name
     carries the writer's pid (``.STEM.part-PID-XXXX.ext``) so that
-    :func:`sensor.lock.sweep_parts` can remove those of killed writers. A full
+    :func:`sensor.io.lock.sweep_parts` can remove those of killed writers. A full
     disk raises :class:`~sensor.errors.DiskFullError` naming ``path``.
     """
     path = Path(path)
@@ -79,7 +79,7 @@ def _renamed_on_success(tmp, path):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         if is_disk_full(exc):
-            from .errors import DiskFullError
+            from sensor.errors import DiskFullError
             raise DiskFullError(f"disk full while writing {path}", path=path) from exc
         raise
     finally:
@@ -93,7 +93,7 @@ def write_bytes_atomic(path, data) -> Path:
     """Write ``data`` (bytes or a C-contiguous buffer) to ``path`` atomically; the lean :func:`atomic_path`.
 
     For writers of one buffer per file at a high rate (rendered frames): the same temp name pattern
-    (``.STEM.part-PID-N.ext``, swept by :func:`sensor.lock.sweep_parts` when its writer is dead), the
+    (``.STEM.part-PID-N.ext``, swept by :func:`sensor.io.lock.sweep_parts` when its writer is dead), the
     same registration for :func:`remove_live_temps`, the same permissions (``0o666`` less the umask,
     applied by the kernel at creation), the same :class:`~sensor.errors.DiskFullError` naming ``path``,
     and nothing left at ``path`` or beside it on failure; but one ``open`` with ``O_EXCL`` on a name

@@ -45,10 +45,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError, UnknownMethodError
-from .fileio import provenance
-from .models import MODELS
-from .profile import SensorProfile
+from sensor.errors import InputError, UnknownMethodError
+from sensor.io.fileio import provenance
+from sensor.models.step import MODELS
+from sensor.profile import SensorProfile
 
 #: mean-ISI bin edges [intervals]
 ISI_EDGES = (1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 80.0, 130.0, 200.0, 500.0, 1e3, 1e4, 1e6)
@@ -339,7 +339,7 @@ def rate_light_curve(profile: SensorProfile, model: str, *, seed: int = 0, n_lev
     intervals. Returns (lambda [e-/interval] (n_levels,), rate [spikes/interval]
     (n_levels,), made non-decreasing).
     """
-    from .simulate import simulate
+    from sensor.simulator import simulate
     kw = {} if not hasattr(profile, "reset") else {"reset": _reset_of(profile)}
     uni = SensorProfile.synthetic(n_levels, n_pixels, threshold_e=profile.threshold_e,
                                   dark_rate=float(np.median(profile.dark_rate)),
@@ -366,7 +366,7 @@ def estimate_light(rate, profile: SensorProfile, model: str, *, seed: int = 0, c
 
     * ``elssim`` with the interval reset: the exact renewal relation, inverted
       per pixel with its own k = ceil(theta / g), refractory fraction and dark
-      probability (:func:`sensor.theory.invert_renewal_rate`).
+      probability (:func:`sensor.analysis.theory.invert_renewal_rate`).
     * any other model / reset: the model's rate-light curve measured by
       simulation on a uniform sensor (:func:`rate_light_curve`), inverted by
       linear interpolation; for models that use the PRNU gain the light is then
@@ -375,14 +375,14 @@ def estimate_light(rate, profile: SensorProfile, model: str, *, seed: int = 0, c
 
     Returns (lambda (H, W) float32, description str).
     """
-    from .effects import count_threshold, dark_event_probability
-    from .theory import invert_renewal_rate
+    from sensor.models.effects import count_threshold, dark_event_probability
+    from sensor.analysis.theory import invert_renewal_rate
     rate = np.asarray(rate, np.float64)
     if model == "elssim" and _reset_of(profile) == "interval":
         k = count_threshold(profile.threshold_e, profile.prnu_gain)
         lam = invert_renewal_rate(rate, k, profile.refractory_fraction, dark_event_probability(profile.dark_rate))
         return lam.astype(np.float32), ("exact renewal inversion per pixel (k = ceil(theta/g), refractory, dark "
-                                        "probability; sensor.theory.invert_renewal_rate)")
+                                        "probability; sensor.analysis.theory.invert_renewal_rate)")
     lam_c, r_c = rate_light_curve(profile, model, seed=seed, n_intervals=curve_intervals)
     # strictly increasing support for the interpolation (plateaus: take the first light level of each rate)
     r_u, first = np.unique(r_c, return_index=True)
@@ -401,7 +401,7 @@ def _simulate_after_warmup(lam, T: int, warmup: int, profile, model: str, seed: 
 
     Streamed, so memory holds the kept T intervals plus one chunk.
     """
-    from .simulate import SpikeSimulator
+    from sensor.simulator import SpikeSimulator
     sim = SpikeSimulator(profile, model, seed, per_interval=True)
     lam = np.asarray(lam, np.float32)
     total = warmup + T
@@ -571,7 +571,7 @@ def scaled_profile(profile: SensorProfile, dark_scale: float, threshold_scale: f
 def _pixel_profile(profile: SensorProfile, idx) -> SensorProfile:
     """A 1 x N profile of the pixels ``idx`` (flat indices) of ``profile``."""
     from dataclasses import replace as _replace
-    from .profile import MAP_NAMES
+    from sensor.profile import MAP_NAMES
     maps = {nm: getattr(profile, nm).reshape(-1)[idx][None, :].copy() for nm in MAP_NAMES}
     return _replace(profile, name=f"{profile.name}[{len(idx)} pixels]", height=1, width=len(idx), raw_width=None,
                     **maps)
@@ -603,7 +603,7 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     Method: ``n_pixels`` stationary, non-hot real pixels with >= 3 spikes are
     drawn at random (seeded; the draws are disjoint while the candidates last).
     At each grid point the pixels' light is the exact inversion of their rate
-    for that profile (:func:`sensor.vidar.light_for_rate`), elssim simulates
+    for that profile (:func:`sensor.calibration.vidar.light_for_rate`), elssim simulates
     them (same T, a warm-up dropped, one fixed seed for every grid point: common
     random numbers) and the objective is the distance D (:func:`_distance`)
     restricted to :data:`FIT_STATISTICS`. The whole grid of both scales is
@@ -619,7 +619,7 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     """
     import time
 
-    from .vidar import light_for_rate
+    from sensor.calibration.vidar import light_for_rate
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     s, (T, H, W) = _checked_recording(spikes, profile)
@@ -725,7 +725,7 @@ def write_csv(path, rows):
     import csv
     import io
 
-    from .fileio import write_text_atomic
+    from sensor.io.fileio import write_text_atomic
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
     w.writeheader()
@@ -740,7 +740,7 @@ def plot(result: RealismResult, path, title: str = ""):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .fileio import atomic_path
+    from sensor.io.fileio import atomic_path
     rows = result.rows
     sources = list(dict.fromkeys(r["source"] for r in rows))
     real_stats = {r["statistic"] for r in rows if r["source"] == "real"}
@@ -843,7 +843,7 @@ def write_report(result: RealismResult, out_dir, recording: str = "") -> dict:
     """Write ``realism.csv``, ``realism.png``, ``realism.json`` and ``realism.md`` into ``out_dir``."""
     from pathlib import Path
 
-    from .fileio import write_json_atomic, write_text_atomic
+    from sensor.io.fileio import write_json_atomic, write_text_atomic
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"csv": out / "realism.csv", "png": out / "realism.png", "json": out / "realism.json",

@@ -27,7 +27,7 @@ import functools
 import numpy as np
 from scipy import special
 
-from .errors import InputError
+from sensor.errors import InputError
 
 _POISSON_TAIL_SIGMAS = 9.0
 
@@ -313,7 +313,7 @@ def fit_hot_pixel(mean_isi_obs: float, var_isi_obs: float, p_dark: float = 0.0, 
     Solves ``moments(mu, sigma, p_dark) == (mean, var)`` by least squares in
     (log mu, log sigma); ``moments`` defaults to :func:`hot_pixel_isi_moments`
     (interval reset; the crossing reset's is
-    :func:`sensor.calib_theory.crossing_hot_pixel_isi_moments`). Returns (mu, sigma).
+    :func:`sensor.calibration.theory.crossing_hot_pixel_isi_moments`). Returns (mu, sigma).
     """
     moments = moments or hot_pixel_isi_moments
     from scipy.optimize import least_squares

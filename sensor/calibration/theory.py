@@ -1,7 +1,7 @@
 """Exact statistics used by absolute calibration (threshold, reset, sensitivity), for both resets.
 
 Everything here is for a non-hot pixel under constant light, in the notation of
-:mod:`sensor.theory`: ``lam`` expected photoelectrons per interval, ``k``
+:mod:`sensor.analysis.theory`: ``lam`` expected photoelectrons per interval, ``k``
 photoelectrons needed to fire (``theta / g``), ``f`` the refractory fraction
 of an interval, ``mu`` the dark-event rate mu_DC per interval (``p = 1 -
 exp(-mu)`` per interval). Time is in intervals. See ``docs/sensor.md``,
@@ -9,7 +9,7 @@ exp(-mu)`` per interval). Time is in intervals. See ``docs/sensor.md``,
 
 Interval reset (Algorithm 2)
     Read-out ISIs are i.i.d. integers with survival
-    ``S(n) = Q(k, lam (n - f)) (1 - p)^n`` (:func:`sensor.theory.isi_survival`).
+    ``S(n) = Q(k, lam (n - f)) (1 - p)^n`` (:func:`sensor.analysis.theory.isi_survival`).
     :func:`interval_isi_moments` gives their exact mean and variance.
 
 Crossing reset (continuous time)
@@ -58,7 +58,7 @@ def interval_isi_moments(lam, k, p_dark=0.0, f=0.0):
     """Exact (mean, variance) of the read-out ISI [intervals] under the interval reset, vectorised.
 
     ``E[N] = sum_{n>=0} S(n)``, ``E[N^2] = sum_{n>=0} (2n + 1) S(n)`` with
-    ``S(n) = Q(k, lam (n - f)) (1 - p)^n`` (:func:`sensor.theory.isi_survival`);
+    ``S(n) = Q(k, lam (n - f)) (1 - p)^n`` (:func:`sensor.analysis.theory.isi_survival`);
     the sums run until the Poisson tail is below 1e-20. Arrays broadcast;
     ``lam > 0`` required.
     """

@@ -1,6 +1,6 @@
 """Event-driven ("fast") implementations of the spike models: cost grows with spikes, not intervals.
 
-Why this is the same model as the step simulator (:class:`sensor.models.ELSSimStep`)
+Why this is the same model as the step simulator (:class:`sensor.models.step.ELSSimStep`)
 -----------------------------------------------------------------------------------
 For a pixel that is not hot, one interval of Algorithm 2 adds ``g * n_m`` with
 ``n_m ~ Poisson(lambda'_m)`` (``lambda'_m = lambda_m (1 - f)`` in the interval
@@ -9,7 +9,7 @@ after a spike, Eq. 6), plus a full threshold when a dark event occurs
 Hence, since the last reset:
 
 * the light fires in the first interval in which the photoelectron count reaches
-  ``k = ceil(theta / g)`` (:func:`sensor.effects.count_threshold`). Counts of
+  ``k = ceil(theta / g)`` (:func:`sensor.models.effects.count_threshold`). Counts of
   disjoint intervals are independent Poisson variables, so the count is a unit
   Poisson process in the rescaled time ``Lambda = sum of lambda'_m``, and the
   count reaches ``k`` exactly when ``Lambda`` passes the k-th arrival time
@@ -60,11 +60,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .effects import count_threshold, dark_event_probability
-from .models import SpikeModel, register_fast
-from .profile import SensorProfile
-from .rates import Segments
-from .spikefile import pack_frames, unpack_frames  # noqa: F401  (re-exported)
+from sensor.models.effects import count_threshold, dark_event_probability
+from sensor.models.step import SpikeModel, register_fast
+from sensor.profile import SensorProfile
+from sensor.rates import Segments
+from sensor.io.spikefile import pack_frames, unpack_frames  # noqa: F401  (re-exported)
 
 try:  # pragma: no cover - exercised by the environment, not by a test toggle
     import numba
@@ -91,7 +91,7 @@ def n_threads() -> int:
         try:
             return max(1, int(env))
         except ValueError:
-            from .errors import InputError
+            from sensor.errors import InputError
             raise InputError(f"must be a positive integer (worker threads of the fast simulator), got '{env}'",
                              field="RENDER2SPIKE_THREADS") from None
     try:
@@ -894,7 +894,7 @@ class ELSSimFast(_FastModel):
 class ELSSimCrossingFast(_FastModel):
     """``elssim`` with the crossing reset, event-driven (profile.reset == "crossing").
 
-    Why it is the reference's model (:class:`sensor.models.ELSSimCrossingStep`):
+    Why it is the reference's model (:class:`sensor.models.step.ELSSimCrossingStep`):
     photoelectrons form a Poisson process of rate lambda(t) (constant within an
     interval), so in the rescaled time ``Lambda(t) = int lambda`` they are a unit
     Poisson process and the k-th one after the pixel starts collecting comes when

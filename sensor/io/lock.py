@@ -8,7 +8,7 @@ over, with a note. Readers can call :func:`holder` to learn whether a live write
 is at work.
 
 Also here: :func:`sweep_parts`, which removes the hidden ``.NAME.part-PID-*`` temp
-files (see :func:`sensor.fileio.atomic_path`) that a killed writer left behind.
+files (see :func:`sensor.io.fileio.atomic_path`) that a killed writer left behind.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import InputError
+from sensor.errors import InputError
 
 LOCK_NAME = ".render2spike.lock"
 #: temp files whose writer pid cannot be told are removed once older than this [s]

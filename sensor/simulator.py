@@ -6,12 +6,12 @@ from typing import Iterator
 
 import numpy as np
 
-from .buffers import RecyclingPool
-from .errors import InputError
-from .models import SpikeModel, block_generator, get_model
-from .profile import SensorProfile
-from .rates import RateSchedule
-from .spikefile import pack_frames, unpack_frames  # noqa: F401  (the one bit layout; re-exported)
+from sensor.io.buffers import RecyclingPool
+from sensor.errors import InputError
+from sensor.models.step import SpikeModel, block_generator, get_model
+from sensor.profile import SensorProfile
+from sensor.rates import RateSchedule
+from sensor.io.spikefile import pack_frames, unpack_frames  # noqa: F401  (the one bit layout; re-exported)
 
 
 class SpikeSimulator:
@@ -71,7 +71,7 @@ class SpikeSimulator:
         """Load (or compile) the fast kernels now, not at the first block: numba's JIT cache load
         (~0.3 s once per process) runs here, on a throw-away 8 x 8 window of the profile with the
         same model and input kind. Meanwhile a helper thread faults in the memory of the first spike
-        blocks (:meth:`sensor.buffers.RecyclingPool.reserve`). This stream's state and spikes are
+        blocks (:meth:`sensor.io.buffers.RecyclingPool.reserve`). This stream's state and spikes are
         untouched."""
         if self.implementation != "fast":
             return
@@ -99,7 +99,7 @@ class SpikeSimulator:
         rng = block_generator(self.seed, self.model_name, m0 // self.block, self.implementation)
         if getattr(self.model, "uses_segments", False):
             # the block's bits go into a recycled array when the caller has dropped an earlier one (no fresh
-            # memory per block: see sensor.buffers); unpacked output only needs them for a moment
+            # memory per block: see sensor.io.buffers); unpacked output only needs them for a moment
             out = self._bits.take((m1 - m0, self.n_bytes))
             bits = self.model.run_segments(self.schedule.segments(m0, m1), self.state, rng, out=out)
             del out
@@ -290,7 +290,7 @@ def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *,
         if t_s.shape != (rate_e.shape[0],):
             raise InputError(f"t_s has shape {t_s.shape}, expected ({rate_e.shape[0]},) to match rate_e",
                              field="t_s")
-        from .rates import check_times, n_intervals_spanned
+        from sensor.rates import check_times, n_intervals_spanned
         check_times(t_s)
     sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=t_s is None)
     if t_s is not None and n_intervals_spanned(t_s[0], t_s[-1], sim.profile.interval_s) < 1:

@@ -38,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SpikeFileError, UnknownMethodError
-from .fileio import DirectStream, atomic_path, provenance
-from .units import INTERVAL_S
+from sensor.errors import SpikeFileError, UnknownMethodError
+from sensor.io.fileio import DirectStream, atomic_path, provenance
+from sensor.units import INTERVAL_S
 
 SPIKES_FORMAT = "render2spike-spikes"
 SPIKES_VERSION = 1
@@ -363,7 +363,7 @@ def _read_h5(path):
     try:
         import h5py
     except ImportError as exc:  # pragma: no cover - h5py is a core dependency
-        from .errors import DependencyError
+        from sensor.errors import DependencyError
         raise DependencyError("reading .h5 spike files needs h5py: pip install h5py") from exc
     try:
         with h5py.File(path, "r") as f:
@@ -663,7 +663,7 @@ class SpikeWriter:
                 src = np.ascontiguousarray(bits).reshape(n, H, W // 8)
                 dst = np.frombuffer(self._fh.reserve(bits.size), np.uint8).reshape(n, H, W // 8)
                 if "numba" in sys.modules:  # loaded (the fast kernels): re-order and count in one compiled call
-                    from sensor.fastio import flip_rows_counted
+                    from sensor.io.fastio import flip_rows_counted
                     self.n_spikes += flip_rows_counted(src, dst)
                 else:  # numpy alone: a writer that does not load numba (~0.6 s) for it
                     np.copyto(dst, src[:, ::-1, :])

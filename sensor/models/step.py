@@ -14,7 +14,7 @@ Registered models (``MODELS``):
 
 * ``ideal``  Algorithm 1: deterministic integrate-and-fire of lambda, reset to
   zero; no shot, dark, hot-pixel, PRNU or refractory effects (quantisation only).
-* ``elssim`` Algorithm 2, with every effect of :mod:`sensor.effects`. It follows the
+* ``elssim`` Algorithm 2, with every effect of :mod:`sensor.models.effects`. It follows the
   profile's ``reset``: ``interval`` is Algorithm 2 as published (:class:`ELSSimStep`),
   ``crossing`` the continuous-time pixel that resets at its threshold crossing
   (:class:`ELSSimCrossingStep`).
@@ -23,18 +23,18 @@ Registered models (``MODELS``):
 
 Each model may have several *implementations* (``reference``: the
 step-by-step simulator, one interval at a time; ``fast``: event-driven, see
-:mod:`sensor.fast`). The reference is the definition.
+:mod:`sensor.models.fast`). The reference is the definition.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
+from sensor.models.effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
                       compute_hot_pixel_crossings, compute_light_or_dark_crossing, compute_prnu, compute_shot_noise,
                       count_threshold, dark_event_probability)
-from .errors import UnknownMethodError
-from .profile import SensorProfile
+from sensor.errors import UnknownMethodError
+from sensor.profile import SensorProfile
 
 #: spawn-key tags: one per model so two models with the same seed use different streams
 STREAM_KEYS = {"ideal": 0, "elssim": 1, "isi": 2}
@@ -137,7 +137,7 @@ class ELSSimStep(SpikeModel):
 class ELSSimCrossingStep(SpikeModel):
     """``elssim`` with the crossing reset, interval by interval with exact firing times (the reference).
 
-    The model (see :mod:`sensor.effects`, "The crossing reset", and docs/sensor.md):
+    The model (see :mod:`sensor.models.effects`, "The crossing reset", and docs/sensor.md):
     within interval m photoelectrons arrive as a Poisson process of rate lambda_m;
     a pixel fires at the moment it holds ``k = ceil(theta / g)`` of them, or at a
     dark event (Poisson process of rate mu_DC), resets to zero at once, is blind
@@ -322,6 +322,6 @@ def get_model(name: str, profile: SensorProfile, implementation: str = "fast") -
 
 def _load_fast() -> None:
     try:
-        from . import fast  # noqa: F401  (registers itself)
+        from sensor.models import fast  # noqa: F401  (registers itself)
     except ImportError:
         pass

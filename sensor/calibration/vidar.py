@@ -1,6 +1,6 @@
 """The bundled ``vidar-default`` profile: how it is built and where every value comes from.
 
-Run ``python -m sensor.vidar`` to rebuild ``sensor/data/vidar-default.npz``
+Run ``python -m sensor.calibration.vidar`` to rebuild ``sensor/data/vidar-default.npz``
 (deterministic: seed 20250101). The provenance of each value is stored in the
 profile itself (``profile.provenance``) and listed in ``docs/sensor.md``.
 """
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .profile import DATA_DIR, SensorProfile, generic_cmos_qe
-from .units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, hz_to_per_interval
+from sensor.profile import DATA_DIR, SensorProfile, generic_cmos_qe
+from sensor.units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, hz_to_per_interval
 
 VIDAR_SEED = 20250101
 DARK_RATE_HZ = 94.0  # mean dark spike rate per pixel [Hz]
@@ -52,7 +52,7 @@ PROVENANCE = {
              "read-out reports at most one spike per interval), chosen on the serial correlation of real read-out "
              "ISIs. A reset at the interval end (Algorithm 2) makes a pixel under steady light a renewal process, "
              "whose consecutive ISIs are uncorrelated; the crossing reset makes them anti-correlated (a firing late "
-             "in its interval lengthens this ISI and shortens the next). Measured by sensor.vidar.reset_evidence on "
+             "in its interval lengthens this ISI and shortens the next). Measured by sensor.calibration.vidar.reset_evidence on "
              "the real Vidar recording uhsr.npz (Spike-Zoo, 250 x 250, 200 intervals, a moving object), pixels "
              "whose ISIs take two adjacent values (a stationarity filter), lag-1 correlation in excess of the "
              "permutation baseline, mean ISI 10-20 intervals (5790 pixels): real -0.194 +- 0.004, crossing reset "
@@ -154,11 +154,11 @@ def light_for_rate(rate, profile: SensorProfile) -> np.ndarray:
     """Photoelectrons per interval that make each pixel of ``profile`` fire at ``rate`` read-out spikes per interval.
 
     The exact inversion of the read-out rate for the profile's reset (interval: renewal mean ISI; crossing: the
-    read-out unit of :mod:`sensor.calib_theory`), with each pixel's k = ceil(theta / g), dark rate and refractory
-    time (:func:`sensor.flatfield.invert_rate`). Rates at or below the dark floor give 0.
+    read-out unit of :mod:`sensor.calibration.theory`), with each pixel's k = ceil(theta / g), dark rate and refractory
+    time (:func:`sensor.calibration.flatfield.invert_rate`). Rates at or below the dark floor give 0.
     """
-    from .effects import count_threshold
-    from .flatfield import invert_rate
+    from sensor.models.effects import count_threshold
+    from sensor.calibration.flatfield import invert_rate
     k = count_threshold(profile.threshold_e, profile.prnu_gain).astype(np.float64)
     x = invert_rate(profile.reset, np.asarray(rate, np.float64), k, profile.dark_rate.astype(np.float64),
                     profile.refractory_fraction.astype(np.float64))
@@ -177,7 +177,7 @@ def reset_evidence(recording, profile: SensorProfile | None = None, seed: int = 
     recording and to both simulations. Returns ``{"real": [...], "interval": [...],
     "crossing": [...]}`` in the format of :func:`lag1_isi_correlation_by_mean_isi`.
     """
-    from .simulate import simulate
+    from sensor.simulator import simulate
     rec = np.asarray(recording).astype(bool)
     T, H, W = rec.shape
     base = profile if profile is not None else SensorProfile.load("vidar-default")
