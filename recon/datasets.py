@@ -148,13 +148,7 @@ def resolve_profile(spec: str | SensorProfile | None, height: int, width: int, s
                                        **DEFAULT_SYNTHETIC)
     else:
         prof = SensorProfile.load(spec)
-    if prof.shape == (height, width):
-        return prof
-    if prof.height < height or prof.width < width:
-        raise InputError(f"profile '{prof.name}' is {prof.height}x{prof.width}, smaller than the "
-                         f"{height}x{width} data", field="profile")
-    top, left = (prof.height - height) // 2, (prof.width - width) // 2
-    return prof.window(top, left, height, width)
+    return prof.centred(height, width)
 
 
 class _Base:

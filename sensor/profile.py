@@ -277,6 +277,20 @@ class SensorProfile:
         return replace(self, name=name or f"{self.name}[{top}:{top + height},{left}:{left + width}]",
                        height=height, width=width, raw_width=None, **maps)
 
+    def centred(self, height: int, width: int) -> "SensorProfile":
+        """The centred ``height x width`` window of this sensor (itself when the size already matches).
+
+        Rows ``(H - height) // 2`` on and columns ``(W - width) // 2`` on; a window larger than the
+        sensor raises :class:`ProfileError` naming both sizes.
+        """
+        height, width = int(height), int(width)
+        if (height, width) == self.shape:
+            return self
+        if height > self.height or width > self.width:
+            raise ProfileError(f"profile '{self.name}' is {self.height}x{self.width}, smaller than the "
+                               f"{height}x{width} input; pass a profile of at least the input size", field="profile")
+        return self.window((self.height - height) // 2, (self.width - width) // 2, height, width)
+
     def replace(self, **changes) -> "SensorProfile":
         """A copy with ``changes`` applied (validated again)."""
         return replace(self, **changes)

@@ -94,7 +94,7 @@ def run(args) -> int:
     from render2spike.commands.simulate import fit_profile
     from sensor.errors import InputError
     from sensor.profile import SensorProfile
-    from sensor.analysis.realism import parse_models, realism, supports_reset, write_report
+    from sensor.analysis.realism import parse_models, realism, write_report
     from sensor.io.spikefile import read_spikes_with_meta
 
     t0 = time.perf_counter()
@@ -135,17 +135,10 @@ def run(args) -> int:
                          f"{args.fit_seeds} and {args.fit_pixels}", field="--fit-seeds")
     base = SensorProfile.load(args.profile)
     profile = fit_profile(base, (H, W), say)
-    usable = [s for s in specs if supports_reset(profile, s.reset)]
-    for s in specs:
-        if s not in usable:
-            say(f"warning: skipping model '{s.label}': this version of the sensor model has no '{s.reset}' reset")
-    if not usable:
-        raise InputError("none of the models can be simulated by this version", field="--models")
-    result = realism(np.ascontiguousarray(spikes), profile, usable, seed=args.seed, segments=args.segments,
+    result = realism(np.ascontiguousarray(spikes), profile, specs, seed=args.seed, segments=args.segments,
                      alpha=args.alpha, progress=say)
     if args.fit:
-        add_fit(result, np.ascontiguousarray(spikes), base, profile, usable, out, args, say)
-    result.notes["skipped_models"] = [s.label for s in specs if s not in usable]
+        add_fit(result, np.ascontiguousarray(spikes), base, profile, specs, out, args, say)
     result.notes["layout"] = meta["layout"]
     paths = write_report(result, out, recording=str(args.recording))
     say("distance D per model (mean |model - real| in standard errors; ~0.8 = indistinguishable):")

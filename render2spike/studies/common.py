@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensor.errors import InputError, UnknownMethodError
+from sensor.errors import InputError
 
 DEFAULT_PREROLL = 2000
 #: expected light spikes per pixel per window below which a cell is flagged (TFP then mostly counts
@@ -40,30 +40,17 @@ NOISE_FREE_LABEL = "noise-free window average"
 
 def parse_model_spec(spec: str) -> tuple[str, str | None]:
     """``elssim`` -> ("elssim", None); ``elssim:crossing`` -> ("elssim", "crossing"). Validated."""
-    from sensor.models.step import MODELS
-    model, _, reset = str(spec).strip().partition(":")
-    if model not in MODELS:
-        raise UnknownMethodError("spike model", model, tuple(MODELS) + ("MODEL:RESET",))
-    return model, (reset or None)
+    from sensor.models.spec import parse_model_spec as parse
+    m = parse(spec)
+    return m.name, m.reset
 
 
 def profile_for(profile, shape, model_spec: str = "elssim"):
     """The sensor for frames of ``shape`` (H, W): centre window of ``profile``, with the spec's reset option."""
+    from sensor.models.spec import parse_model_spec as parse
     from sensor.profile import SensorProfile
     prof = profile if isinstance(profile, SensorProfile) else SensorProfile.load(profile)
-    H, W = shape
-    if prof.shape != (H, W):
-        if prof.height < H or prof.width < W:
-            raise InputError(f"profile {prof.name} ({prof.height}x{prof.width}) is smaller than the frames "
-                             f"{tuple(shape)}", field="profile")
-        prof = prof.window((prof.height - H) // 2, (prof.width - W) // 2, H, W)
-    _, reset = parse_model_spec(model_spec)
-    if reset:
-        if not hasattr(prof, "reset") or not hasattr(prof, "replace"):
-            raise InputError(f"model '{model_spec}': this version's sensor profiles have no 'reset' option "
-                             "(use ideal, isi or elssim)", field="model")
-        prof = prof.replace(reset=reset)
-    return prof
+    return parse(model_spec).profile(prof.centred(*shape))
 
 
 def preroll_keyframes(rate_kf, t_s, preroll: int, seed: int, interval_s: float):

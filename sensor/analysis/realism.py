@@ -45,9 +45,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sensor.errors import InputError, UnknownMethodError
+from sensor.errors import InputError
 from sensor.io.fileio import provenance
-from sensor.models.step import MODELS
+from sensor.models.spec import ModelSpec, parse_models
 from sensor.profile import SensorProfile
 
 #: mean-ISI bin edges [intervals]
@@ -56,7 +56,6 @@ ISI_EDGES = (1.0, 2.0, 3.0, 4.5, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 80.0, 1
 #: window, only pixels with mean ISI <= w, i.e. at least one spike per window on average)
 FANO_WINDOWS = (10, 25, 50)
 DEFAULT_MODELS = ("elssim:interval", "elssim:crossing", "isi", "ideal")
-RESETS = ("interval", "crossing")
 STATISTICS = {
     "isi_cv": "ISI coefficient of variation",
     "isi_lag1": "lag-1 ISI serial correlation",
@@ -274,53 +273,13 @@ def spike_statistics(spikes, keep=None, *, source: str = "real", isi_edges=ISI_E
 
 
 # ------------------------------------------------------------------- models and light
-@dataclass(frozen=True)
-class ModelSpec:
-    """A model to compare: registry name plus the pixel reset (None: the profile's own)."""
-
-    name: str
-    reset: str | None = None
-
-    @property
-    def label(self) -> str:
-        return self.name if self.reset is None else f"{self.name}:{self.reset}"
-
-
-def parse_models(text) -> list[ModelSpec]:
-    """``"elssim:interval,elssim:crossing,isi,ideal"`` -> specs; unknown names list the valid ones."""
-    items = [t.strip() for t in (text.split(",") if isinstance(text, str) else text) if t.strip()]
-    if not items:
-        raise InputError("no models given", field="--models")
-    out = []
-    for it in items:
-        name, _, reset = it.partition(":")
-        if name not in MODELS:
-            raise UnknownMethodError("spike model", name, MODELS)
-        if reset and reset not in RESETS:
-            raise UnknownMethodError("pixel reset", reset, RESETS)
-        out.append(ModelSpec(name, reset or None))
-    return out
-
-
-def supports_reset(profile: SensorProfile, reset: str | None) -> bool:
-    """Whether this version's sensor model can simulate ``reset`` (``interval`` is Algorithm 2, always there)."""
-    return reset in (None, "interval") or hasattr(profile, "reset")
-
-
 def profile_for(profile: SensorProfile, spec: ModelSpec) -> SensorProfile:
     """The profile with the spec's reset applied."""
-    if spec.reset is None:
-        return profile
-    if not hasattr(profile, "reset"):
-        if spec.reset == "interval":
-            return profile  # Algorithm 2 as published: the only reset of this version
-        raise InputError(f"model '{spec.label}' needs the '{spec.reset}' reset, which this version of the sensor "
-                         "model does not have", field="--models")
-    return profile.replace(reset=spec.reset)
+    return spec.profile(profile)
 
 
 def _reset_of(profile) -> str:
-    return getattr(profile, "reset", "interval")
+    return profile.reset
 
 
 def _uses_gain(model: str) -> bool:
@@ -340,7 +299,7 @@ def rate_light_curve(profile: SensorProfile, model: str, *, seed: int = 0, n_lev
     (n_levels,), made non-decreasing).
     """
     from sensor.simulator import simulate
-    kw = {} if not hasattr(profile, "reset") else {"reset": _reset_of(profile)}
+    kw = {"reset": profile.reset}
     uni = SensorProfile.synthetic(n_levels, n_pixels, threshold_e=profile.threshold_e,
                                   dark_rate=float(np.median(profile.dark_rate)),
                                   refractory_s=float(np.median(profile.refractory_s)), interval_s=profile.interval_s,
