@@ -18,8 +18,7 @@ for a in "$@"; do
 done
 
 have_llvm() {
-  # (not `ls A B C | grep`: under pipefail, ls's error for the patterns that match nothing failed the test even
-  # when another one matched, so every run re-ran apt-get)
+  # one test per pattern: under pipefail, `ls A B C | grep` fails when any pattern matches nothing
   local f
   for f in /usr/lib/x86_64-linux-gnu/libLLVM.so.19* /usr/lib/aarch64-linux-gnu/libLLVM.so.19* \
            /usr/lib/llvm-19/lib/libLLVM*.so*; do
