@@ -193,7 +193,7 @@ def _gamma_constants(profile: SensorProfile):
 
 
 class ELSSimFast(_FastModel):
-    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see module doc)."""
+    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see :mod:`sensor.models.kernels`)."""
 
     name = "elssim"
 
@@ -299,7 +299,7 @@ class ISIFast(_FastModel):
         super().__init__(profile)
         p = profile
         self.gb, self.gc = _gamma_constants(p)
-        # counts throughout (see models.ISIModel): the gain enters once, through k
+        # counts throughout (see sensor.models.step.ISIModel): the gain enters once, through k
         self.dark_q = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain).reshape(-1)
 
     def init_state(self) -> dict:
