@@ -13,8 +13,8 @@ from sensor.profile import SensorProfile, bundled_profiles
 from sensor.rates import RateSchedule, interval_rates
 from sensor.simulator import SpikeSimulator, simulate
 from sensor.spectral import SpectralCurve
-from sensor.io.spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts, write_dat,
-                        write_h5, write_spikes)
+from sensor.io.spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts,
+                                 write_dat, write_h5, write_spikes)
 from sensor.units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
 
 

@@ -193,7 +193,7 @@ def _gamma_constants(profile: SensorProfile):
 
 
 class ELSSimFast(_FastModel):
-    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see :mod:`sensor.models.kernels`)."""
+    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see the kernels' doc)."""
 
     name = "elssim"
 

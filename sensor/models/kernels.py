@@ -479,7 +479,7 @@ if HAVE_NUMBA:
     @_jit
     def crossing_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx, gb, gc, fr, mu, gain,
                        hot_mu, hot_sigma, theta, rem, dark_next, blind, guard, v, out):
-        """``elssim`` with the crossing reset (see sensor.models.fast.ELSSimCrossingFast): continuous firing times, no interval reset.
+        """``elssim`` with the crossing reset (see ``ELSSimCrossingFast``): continuous firing times, no interval reset.
 
         Times are >= 0 and positions >= the piece start, so ``int()`` truncation is the floor throughout.
 
