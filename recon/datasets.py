@@ -160,7 +160,7 @@ class _Base:
                  window: int = RSIR_WINDOW, intervals: int | None = None, warmup: int = 64,
                  include_spikes: bool = False, max_items: int | None = None, implementation: str = "fast",
                  start: str = "phase"):
-        from sensor.models.step import MODELS
+        from sensor.models.registry import MODELS
         if model not in MODELS:
             from sensor.errors import UnknownMethodError
             raise UnknownMethodError("spike model", model, MODELS)

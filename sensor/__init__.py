@@ -8,13 +8,13 @@ This package never imports Mitsuba.
 from sensor.errors import (CalibrationError, DependencyError, FrameFileError, InputError, ProfileError,
                      Render2SpikeError, SpikeFileError, UnknownMethodError)
 from sensor.io.frames import FrameSequence, read_frame, read_frames, write_frame, write_frames, write_manifest
-from sensor.models.step import MODELS, get_model
+from sensor.models.registry import MODELS, get_model
 from sensor.profile import SensorProfile, bundled_profiles
 from sensor.rates import RateSchedule, interval_rates
 from sensor.simulator import SpikeSimulator, simulate
 from sensor.spectral import SpectralCurve
-from sensor.io.spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts, write_dat,
-                        write_h5, write_spikes)
+from sensor.io.spikefile import (read_dat, read_spikes, read_spikes_meta, read_spikes_with_meta, spike_layouts,
+                                 write_dat, write_h5, write_spikes)
 from sensor.units import INTERVAL_S, CLOCK_HZ, TIME_UNIT_S
 
 

@@ -10,9 +10,8 @@ File format (``.npz``, version 2)
 ---------------------------------
 A numpy ``.npz`` archive (zip, compressed) holding
 
-* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields (version 2
-  adds ``reset``; a version-1 file, which has none, loads as ``"interval"``),
-  the QE curve, the provenance of every value and the format version;
+* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields (``reset``
+  included), the QE curve, the provenance of every value and the format version;
 * the maps, each float32 (H, W) unless noted:
   ``dark_rate`` (mu_DC, expected dark events per interval), ``hot_mask`` (bool),
   ``hot_mu`` and ``hot_sigma`` (hot-pixel charge per interval in units of the
@@ -374,7 +373,7 @@ class SensorProfile:
                        threshold_e=meta["threshold_e"], interval_s=meta["interval_s"], clock_hz=meta["clock_hz"],
                        pixel_pitch_m=meta["pixel_pitch_m"], fill_factor=meta["fill_factor"],
                        raw_width=meta.get("raw_width"), qe=SpectralCurve.from_dict(meta["qe"]),
-                       reset=meta.get("reset", "interval"),  # version 1 files have no reset: Algorithm 2
+                       reset=meta["reset"],
                        provenance=meta.get("provenance", {}), meta=meta.get("meta", {}), **maps)
         except KeyError as exc:
             raise ProfileError("missing required field", path=p, field=str(exc.args[0])) from exc

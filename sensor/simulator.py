@@ -8,10 +8,11 @@ import numpy as np
 
 from sensor.io.buffers import RecyclingPool
 from sensor.errors import InputError
-from sensor.models.step import SpikeModel, block_generator, get_model
+from sensor.models.registry import get_model
+from sensor.models.step import SpikeModel, block_generator
 from sensor.profile import SensorProfile
 from sensor.rates import RateSchedule
-from sensor.io.spikefile import pack_frames, unpack_frames  # noqa: F401  (the one bit layout; re-exported)
+from sensor.io.bits import pack_frames, unpack_frames
 
 
 class SpikeSimulator:

@@ -53,7 +53,7 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.models.step import MODELS
+    from sensor.models.registry import MODELS
     from sensor.analysis.realism import DEFAULT_MODELS
     from sensor.io.spikefile import LAYOUTS
     p = sub.add_parser("realism", help=HELP, description=DESCRIPTION.format(models=", ".join(MODELS)),

@@ -35,7 +35,7 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.models.step import MODELS
+    from sensor.models.registry import MODELS
 
     from render2spike.commands._common import HelpFormatter
     from render2spike.commands.render import add_scene_options

@@ -46,7 +46,7 @@ examples:
 
 
 def register(sub) -> None:
-    from sensor.models.step import MODELS
+    from sensor.models.registry import MODELS
     from sensor.profile import RESETS
 
     from render2spike.commands._common import add_overwrite

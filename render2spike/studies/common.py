@@ -18,7 +18,7 @@ threshold, as in the stationary state. Pixels below it are counted as
 
 Model specs
 -----------
-``ideal``, ``isi``, ``elssim`` (``sensor.models.step.MODELS``), optionally
+``ideal``, ``isi``, ``elssim`` (``sensor.models.registry.MODELS``), optionally
 ``MODEL:RESET`` with a pixel-reset option of the sensor profile
 (``elssim:crossing``: ``profile.replace(reset="crossing")``; ``elssim:interval``:
 Algorithm 2 as published). A bare model name follows the profile's own reset

@@ -293,11 +293,10 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         changes["threshold_e"] = float(fit["threshold_e"])
         changes["provenance"]["threshold_e"] = (f"calibrated: photon transfer from flat ISI variances "
                                                 f"({fit['threshold_e']:.0f} +- {fit['threshold_se']:.0f} e-)")
-    if hasattr(base, "reset"):
-        changes["reset"] = fit["reset"]
-        changes["provenance"]["reset"] = (
-            f"calibrated: lag-1 ISI correlation test, decision {fit['reset']} (confidence "
-            f"{fit['reset_confidence']:.4f})" if reset is None else f"imposed by the user ({reset})")
+    changes["reset"] = fit["reset"]
+    changes["provenance"]["reset"] = (
+        f"calibrated: lag-1 ISI correlation test, decision {fit['reset']} (confidence "
+        f"{fit['reset_confidence']:.4f})" if reset is None else f"imposed by the user ({reset})")
     prof = base.replace(**changes)
     numbers = {
         "median_dark_fraction": median_p,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sensor.errors import InputError, UnknownMethodError
-from sensor.models.step import MODELS
+from sensor.models.registry import MODELS
 from sensor.profile import RESETS
 
 

@@ -1,4 +1,4 @@
-"""Spike models behind one streaming interface, and their registry.
+"""The step (reference) spike models behind one streaming interface.
 
 A model turns lambda (expected photoelectrons per interval, float32 (B, H, W))
 into spikes (bool (B, H, W)), one block of intervals at a time, carrying its
@@ -10,7 +10,7 @@ GalSim-style child seed for that stage and block). Blocks are fixed by absolute
 interval index, never by how the caller chunks the input, so a seed gives
 bitwise-identical spikes for any chunk size.
 
-Registered models (``MODELS``):
+The models (registered in :mod:`sensor.models.registry`):
 
 * ``ideal``  Algorithm 1: deterministic integrate-and-fire of lambda, reset to
   zero; no shot, dark, hot-pixel, PRNU or refractory effects (quantisation only).
@@ -22,7 +22,7 @@ Registered models (``MODELS``):
   NeuSpike-Net (see :class:`ISIModel`).
 
 Each model may have several *implementations* (``reference``: the
-step-by-step simulator, one interval at a time; ``fast``: event-driven, see
+step-by-step simulator, one interval at a time, here; ``fast``: event-driven, see
 :mod:`sensor.models.fast`). The reference is the definition.
 """
 
@@ -33,7 +33,6 @@ import numpy as np
 from sensor.models.effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
                       compute_hot_pixel_crossings, compute_light_or_dark_crossing, compute_prnu, compute_shot_noise,
                       count_threshold, dark_event_probability)
-from sensor.errors import UnknownMethodError
 from sensor.profile import SensorProfile
 
 #: spawn-key tags: one per model so two models with the same seed use different streams
@@ -284,44 +283,3 @@ class ISIModel(SpikeModel):
                 idx = idx[tf[idx] < m + 1]
         state["m"] = m_start + lam.shape[0]
         return out
-
-
-_REFERENCE = {"ideal": IdealModel, "elssim": ELSSimStep, "isi": ISIModel}
-#: models whose pixel follows the profile's ``reset``: the class per reset (the ``_REFERENCE`` one is "interval")
-_REFERENCE_BY_RESET = {("elssim", "crossing"): ELSSimCrossingStep}
-_FAST: dict = {}
-
-
-def register_fast(name: str, cls: type, reset: str = "interval") -> None:
-    """Register a fast (event-driven) implementation of model ``name`` for profiles with ``reset``."""
-    _FAST[(name, reset)] = cls
-
-
-MODELS = tuple(_REFERENCE)
-IMPLEMENTATIONS = ("fast", "reference")
-
-
-def get_model(name: str, profile: SensorProfile, implementation: str = "fast") -> SpikeModel:
-    """Instantiate model ``name`` with ``implementation`` ('fast' falls back to 'reference' when none exists).
-
-    ``elssim`` follows ``profile.reset`` (``interval``: Algorithm 2; ``crossing``: the
-    continuous-time pixel); ``ideal`` and ``isi`` have one pixel each and ignore it.
-    """
-    if name not in _REFERENCE:
-        raise UnknownMethodError("spike model", name, _REFERENCE)
-    if implementation not in IMPLEMENTATIONS:
-        raise UnknownMethodError("implementation", implementation, IMPLEMENTATIONS)
-    reset = getattr(profile, "reset", "interval")
-    key = (name, reset) if (name, reset) in _REFERENCE_BY_RESET else (name, "interval")
-    if implementation == "fast":
-        _load_fast()
-        if key in _FAST:
-            return _FAST[key](profile)
-    return _REFERENCE_BY_RESET.get(key, _REFERENCE[name])(profile)
-
-
-def _load_fast() -> None:
-    try:
-        from sensor.models import fast  # noqa: F401  (registers itself)
-    except ImportError:
-        pass

@@ -58,20 +58,20 @@ def test_reset_field_validated_saved_loaded_and_shown(tmp_path):
     assert PROFILE_VERSION >= 2 and back.to_meta()["version"] == PROFILE_VERSION
 
 
-def test_version_1_file_without_reset_loads_as_interval(tmp_path):
+def test_a_profile_file_without_reset_is_refused(tmp_path):
     p = crossing_profile(3, 5, 40.0)
     path = p.save(tmp_path / "v2.npz")
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(bytes(arrays["meta_json"]).decode())
-    meta["version"] = 1
     del meta["reset"]
     arrays["meta_json"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
-    old = tmp_path / "v1.npz"
-    old.write_bytes(buf.getvalue())
-    assert sensor.SensorProfile.load(old).reset == "interval"
+    bad = tmp_path / "no-reset.npz"
+    bad.write_bytes(buf.getvalue())
+    with pytest.raises(sensor.ProfileError, match="reset"):
+        sensor.SensorProfile.load(bad)
 
 
 def test_info_command_shows_the_reset(tmp_path, capsys):
@@ -82,7 +82,8 @@ def test_info_command_shows_the_reset(tmp_path, capsys):
 
 
 def test_elssim_follows_the_profile_reset():
-    from sensor.models.step import ELSSimCrossingStep, ELSSimStep, get_model
+    from sensor.models.registry import get_model
+    from sensor.models.step import ELSSimCrossingStep, ELSSimStep
     p = crossing_profile(2, 8, 20.0)
     assert isinstance(get_model("elssim", p, "reference"), ELSSimCrossingStep)
     assert isinstance(get_model("elssim", p.replace(reset="interval"), "reference"), ELSSimStep)

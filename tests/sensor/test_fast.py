@@ -28,9 +28,10 @@ from scipy import stats
 import sensor
 from sensor.analysis import theory
 from sensor.models.effects import count_threshold
-from sensor.models.step import block_generator, get_model
+from sensor.models.registry import get_model
+from sensor.models.step import block_generator
 from sensor.rates import RateSchedule, Segments, interval_rates
-from sensor.simulator import pack_frames, unpack_frames
+from sensor.io.bits import pack_frames, unpack_frames
 from sensor.units import INTERVAL_S
 
 from ..conftest import Z

@@ -7,7 +7,8 @@ import pytest
 
 import sensor
 import sensor.models.fast as fast
-from sensor.models.step import block_generator, get_model
+from sensor.models.registry import get_model
+from sensor.models.step import block_generator
 from sensor.rates import Segments
 from sensor.io.spikefile import unpack_frames
 

@@ -158,7 +158,7 @@ def test_realism_cli_runs_on_the_real_recording(tmp_path, capsys):
 
 
 def test_streamed_warmup_equals_the_tail_of_one_long_simulation():
-    from sensor.analysis.realism import _simulate_after_warmup
+    from sensor.analysis.light import simulate_after_warmup as _simulate_after_warmup
     p = sensor.SensorProfile.synthetic(8, 16, threshold_e=100.0, dark_rate=0.01, seed=0)
     lam = np.linspace(1, 50, 128, dtype=np.float32).reshape(8, 16)
     for T, warm, chunk in ((300, 1000, 97), (5, 3, 2)):
