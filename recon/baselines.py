@@ -32,7 +32,8 @@ import numpy as np
 from sensor.errors import InputError
 from sensor.io.fileio import provenance, write_json_atomic
 
-from .classic import deadtime_correct, tfp
+from .classic import deadtime_correct, tfp, window_bounds
+from .metrics import psnr_ssim
 
 DATA_DIR = Path(__file__).with_name("data")
 SIGMA_TABLE_FILE = DATA_DIR / "denoise_sigma.json"
@@ -52,7 +53,6 @@ def gaussian_denoise(img, sigma: float) -> np.ndarray:
 
 def mean_count(spikes, window: int | None = None, center: int | None = None) -> float:
     """Mean spike count per pixel over the centred window (the light-level key of the sigma table)."""
-    from .classic import window_bounds
     s = np.asarray(spikes)
     start, stop = window_bounds(s.shape[0], window, center)
     return float(tfp(s, window, center).mean()) * (stop - start)
@@ -128,7 +128,6 @@ def tune_sigmas(samples, sigmas=SIGMA_GRID) -> tuple[float, dict]:
 
     Returns (best sigma, {sigma: mean PSNR}). Uses the samples' own window (M).
     """
-    from .evaluate import psnr_ssim
     scores = {float(s): [] for s in sigmas}
     for smp in samples:
         M = smp.windows.shape[0] * int(smp.meta.get("window", 32))

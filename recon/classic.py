@@ -210,7 +210,7 @@ def deadtime_correct(rate, profile, correct_hot_pixels: bool = True) -> np.ndarr
                          f"{profile.height}x{profile.width}", field="profile")
     gain = profile.prnu_gain.astype(np.float64)
     k = count_threshold(profile.threshold_e, gain)
-    if getattr(profile, "reset", "interval") == "crossing":
+    if profile.reset == "crossing":
         lam = _invert_crossing(r, k, profile.refractory_fraction.astype(np.float64),
                                profile.dark_rate.astype(np.float64))
     else:

@@ -35,20 +35,17 @@ from pathlib import Path
 import numpy as np
 
 from sensor.units import intervals_to_seconds
-from sensor.calibration.vidar import VIDAR_SYNTHETIC
 from sensor.errors import InputError
 from sensor.profile import SensorProfile
 
 from .classic import RSIR_N_WINDOWS, RSIR_WINDOW, tfp, tfp_windows
 from .imageio import read_reference, read_srgb_luminance
+from .profiles import DEFAULT_SYNTHETIC, uniform_profile  # noqa: F401  (re-exported)
+from .profiles import recording_profile, resolve_profile, sensor_maps
 
 DATA_DIR = Path(__file__).with_name("data")
 DAVIS_SPLIT_FILE = DATA_DIR / "davis2017_split.json"
 
-#: the synthetic sensor drawn when no profile is named (values of the bundled vidar-default profile, see
-#: docs/sensor.md: threshold 2000 e-, dark 94 Hz = 0.0047 events per 50 us interval, log spread 0.37,
-#: PRNU sigma 0.058, 0.1 % hot pixels)
-DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC, reset="crossing")  # vidar-default's reset (docs/sensor.md)
 _KIND_KEYS = {"davis": 1, "rendered": 2, "sdmd": 3}
 
 
@@ -102,19 +99,6 @@ def _children(ss: np.random.SeedSequence):
     return np.random.Generator(np.random.PCG64(a)), int(b.generate_state(1, np.uint32)[0])
 
 
-def sensor_maps(profile: SensorProfile) -> np.ndarray:
-    """float32 (3, H, W): dark-event probability per interval (1 - exp(-mu_DC)), PRNU gain, hot-pixel indicator.
-
-    The network's map features use the first ``n_maps`` channels (2, or 1 for
-    the ``rsir`` preset); the hot-pixel indicator (1 where the profile's pixel is
-    hot, else 0) tells the output head's classic estimates which pixels to
-    leave out of their smoothing (:func:`recon.nets.classic_bank`).
-    """
-    from sensor.models.effects import dark_event_probability
-    return np.stack([dark_event_probability(profile.dark_rate), profile.prnu_gain,
-                     profile.hot_mask]).astype(np.float32)
-
-
 def parse_hw(text, field_name: str) -> tuple[int, int]:
     """'HxW' -> (H, W)."""
     try:
@@ -124,31 +108,6 @@ def parse_hw(text, field_name: str) -> tuple[int, int]:
     if h < 1 or w < 1:
         raise InputError(f"size must be positive, got {h}x{w}", field=field_name)
     return h, w
-
-
-def uniform_profile(height: int, width: int) -> SensorProfile:
-    """The default sensor where none is known (real recordings without a profile): every pixel alike.
-
-    The vidar-like threshold, refractory time, reset and the *mean* dark rate of
-    :data:`DEFAULT_SYNTHETIC`, with no PRNU, no dark-rate spread and no hot
-    pixels (nothing drawn at random: the pixels' real fixed pattern is unknown).
-    """
-    d = DEFAULT_SYNTHETIC
-    return SensorProfile.synthetic(height, width, threshold_e=d["threshold_e"], dark_rate=d["dark_rate"],
-                                   refractory_s=d["refractory_s"], reset=d["reset"],
-                                   name=f"recon-uniform-{height}x{width}")
-
-
-def resolve_profile(spec: str | SensorProfile | None, height: int, width: int, seed: int = 0) -> SensorProfile:
-    """A profile of exactly ``height x width``: a bundled name / path (centre window if larger) or 'synthetic'."""
-    if isinstance(spec, SensorProfile):
-        prof = spec
-    elif spec in (None, "", "synthetic"):
-        return SensorProfile.synthetic(height, width, seed=seed, name=f"recon-synthetic-{height}x{width}-s{seed}",
-                                       **DEFAULT_SYNTHETIC)
-    else:
-        prof = SensorProfile.load(spec)
-    return prof.centred(height, width)
 
 
 class _Base:
@@ -586,7 +545,7 @@ class SDMDDataset(_Base):
     ``profile`` (a calibrated profile of the camera) supplies the sensor maps
     and the dead-time-corrected TFP; without it both use a uniform sensor
     (:func:`uniform_profile`: the mean vidar dark rate, gain 1) with the hot
-    pixels found in the recording (:func:`recon.reconstruct.recording_profile`).
+    pixels found in the recording (:func:`recon.profiles.recording_profile`).
     """
 
     kind = "sdmd"
@@ -634,10 +593,10 @@ class SDMDDataset(_Base):
         H = int(meta.get("height", self.height))
         W = int(meta.get("width", self.width))
         drop = int(meta.get("drop_columns", self.drop))
-        from .reconstruct import read_recording
+        from sensor.io.spikefile import read_spikes_with_meta
         dat, ref_path, _ = self.pairs[scene]
-        allspikes, _ = read_recording(dat, layout=meta.get("layout", self.layout), height=H, width=W,
-                                      drop_columns=drop)
+        allspikes, _ = read_spikes_with_meta(dat, layout=meta.get("layout", self.layout), height=H, width=W,
+                                             drop_columns=drop)
         H, W, drop = allspikes.shape[1], allspikes.shape[2], 0
         T = allspikes.shape[0]
         if T < self.L:
@@ -659,7 +618,6 @@ class SDMDDataset(_Base):
             factor = float(tfp(allspikes).mean()) / max(float(ref.mean()), 1e-12)
         prof = None if self.profile_spec in (None, "") else resolve_profile(self.profile_spec, H, Wd, self.seed)
         if prof is None:  # the uniform sensor with the hot pixels found in the recording (docs/recon.md)
-            from .reconstruct import recording_profile
             prof = recording_profile(allspikes, warn=False)
             given = False
         else:

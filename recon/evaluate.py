@@ -38,8 +38,8 @@ from sensor.io.fileio import atomic_path, write_json_atomic, write_text_atomic
 
 from .classic import tfi, tfp, tfp_deadtime
 from .imageio import show_image_row, white_level
+from .metrics import PSNR_CAP_DB, WHITE_PERCENTILE, normalise, psnr_ssim  # noqa: F401  (re-exported)
 
-WHITE_PERCENTILE = 99.5
 #: the method names ``--methods`` accepts (stable: studies refer to them)
 METHOD_NAMES = ("tfp", "tfp:N", "tfi", "tfp-dt", "tfp-dt-denoised", "tfp-dt-denoised:S", "rsir:CKPT")
 
@@ -139,32 +139,6 @@ def apply_method(m: Method, sample) -> np.ndarray:
 
 def _window_of(sample) -> int:
     return int(sample.meta.get("window", 32))
-
-
-#: PSNR reported for an exact reconstruction [dB] (10 log10(1 / 1e-12)): keeps averages finite
-PSNR_CAP_DB = 120.0
-
-
-def normalise(img, white: float) -> np.ndarray:
-    """Divide by the reference white level and clip to [0, 1] (the metric domain)."""
-    return np.clip(np.asarray(img, np.float64) / white, 0.0, 1.0)
-
-
-def psnr_ssim(pred, ref) -> tuple[float, float]:
-    """PSNR [dB] and SSIM of ``pred`` against ``ref`` (both linear, same units) after :func:`normalise`."""
-    try:
-        from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-    except ImportError as exc:
-        from sensor.errors import DependencyError
-        raise DependencyError("PSNR/SSIM need scikit-image (a core dependency of render2spike): "
-                              "pip install 'scikit-image>=0.22'") from exc
-    w = white_level(ref, WHITE_PERCENTILE)
-    p, r = normalise(pred, w), normalise(ref, w)
-    # an exact match would give +inf and poison averages: cap at the PSNR of a 1e-6 RMS error (120 dB)
-    psnr = PSNR_CAP_DB if np.array_equal(p, r) else min(float(peak_signal_noise_ratio(r, p, data_range=1.0)), PSNR_CAP_DB)
-    win = min(7, min(r.shape) - (1 - min(r.shape) % 2))
-    ssim = float(structural_similarity(r, p, data_range=1.0, win_size=max(win, 3))) if min(r.shape) >= 3 else float("nan")
-    return psnr, ssim
 
 
 def evaluate(dataset, methods: list[Method], out_dir, *, n_examples: int = 4, progress: bool = True,

@@ -10,6 +10,7 @@ from sensor.errors import InputError
 
 from .classic import RSIR_N_WINDOWS, RSIR_WINDOW, tfi, tfp, tfp_deadtime, tfp_windows
 from .imageio import to_display, white_level, write_exr, write_npy, write_png
+from .profiles import recording_profile, resolve_profile, sensor_maps
 
 UNITS = "ideal spikes per interval (rate_e / threshold_e)"
 
@@ -35,30 +36,6 @@ def read_recording(path, *, layout: str | None = None, height: int | None = None
     """
     from sensor.io.spikefile import read_spikes_with_meta
     return read_spikes_with_meta(path, layout=layout, height=height, width=width, drop_columns=drop_columns)
-
-
-def recording_profile(spikes, source="the recording", warn: bool = True):
-    """The sensor assumed for a recording that comes without a profile (``--profile`` not given).
-
-    :func:`recon.datasets.uniform_profile` (vidar-like threshold, refractory
-    time and reset, the mean dark rate, no PRNU) with the hot pixels found in
-    the recording itself (:func:`sensor.calibration.estimate.scene_hot_pixels`), so
-    the dead-time correction and the network's output head leave them out.
-    Warns (unless ``warn=False``), naming how many were found: a calibrated profile is better.
-    """
-    import warnings
-
-    from sensor.calibration.estimate import scene_hot_pixels
-
-    from .datasets import uniform_profile
-    s = np.asarray(spikes)
-    hot = scene_hot_pixels(s)
-    prof = uniform_profile(s.shape[1], s.shape[2]).replace(hot_mask=hot)
-    if warn:
-        warnings.warn(f"{source}: no --profile given; assuming a uniform vidar-like sensor, with {int(hot.sum())} "
-                      f"hot pixel(s) found as isolated outliers of the recording's spike counts (pass --profile "
-                      f"with a calibrated profile, see render2spike calibrate)", stacklevel=2)
-    return prof
 
 
 def fit_windows(T: int, n_windows: int | None, window: int | None, trained: tuple[int, int]) -> tuple[int, int]:
@@ -103,7 +80,6 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
     T, H, W = spikes.shape
     prof = None
     if profile:
-        from .datasets import resolve_profile
         prof = resolve_profile(profile, H, W)
     if prof is None and method in ("tfp-dt", "tfp-dt-denoised", "rsir"):
         prof = recording_profile(spikes, source=spikes_path)
@@ -146,7 +122,6 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
             import torch
             w = tfp_windows(spikes, N, Lw, center=c)
             dev = next(model.parameters()).device
-            from .datasets import sensor_maps
             maps = torch.from_numpy(sensor_maps(prof)[None]).to(dev)
             img = model.reconstruct(torch.from_numpy(w[None]).to(dev), maps)[0, 0].cpu().numpy()
         img = np.asarray(img, np.float32)

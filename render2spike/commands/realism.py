@@ -151,7 +151,7 @@ def run(args) -> int:
 def add_fit(result, spikes, base, profile, specs, out, args, say) -> None:
     """Fit dark rate and threshold, write DIR/fitted_profile.npz, add the fitted elssim models to ``result``."""
     from sensor.analysis.realism import add_fitted_models, fit_profile as fit, scaled_profile
-    say(f"fitting dark rate and threshold of elssim (reset {getattr(profile, 'reset', 'interval')}) to the recording")
+    say(f"fitting dark rate and threshold of elssim (reset {profile.reset}) to the recording")
     f = fit(spikes, profile, seed=args.seed, n_seeds=args.fit_seeds, n_pixels=args.fit_pixels,
             segments=args.segments, alpha=args.alpha, progress=say)
     say(f"fit: dark rate x{f.dark_scale:.3g} +- {f.dark_scale_sd:.2g}, threshold x{f.threshold_scale:.3g} +- "

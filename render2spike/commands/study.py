@@ -12,8 +12,8 @@ Three studies, each writing a CSV of every row, a Markdown summary and PNG plots
 
   render2spike study lux FRAMES --out DIR ...
       reconstruction quality vs illuminance and noise model, over rendered frames
-      (the frames are rescaled exactly: light is linear). The old form
-      `render2spike study FRAMES ...` still works and means `study lux FRAMES ...`.
+      (the frames are rescaled exactly: light is linear). The short form
+      `render2spike study FRAMES ...` means `study lux FRAMES ...`.
   render2spike study motion SCENE --param KEY=v1,v2,... --out DIR ...
       PSNR, SSIM and blur width vs any numeric scene parameter (the bundled
       rotating_disk and translating_object expose speed_px_per_ms).
@@ -189,7 +189,7 @@ def run(args) -> int:
             print(DESCRIPTION)
             return 0
         if Path(which).exists() or not which.isidentifier():
-            which, rest = "lux", [which] + rest  # the old form: study FRAMES ...
+            which, rest = "lux", [which] + rest  # the short form: study FRAMES ...
         else:
             from sensor.errors import UnknownMethodError
             raise UnknownMethodError("study", which, STUDIES)

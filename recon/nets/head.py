@@ -1,0 +1,162 @@
+"""The classic-bank output head: classic estimates the network can choose among, per pixel.
+
+:func:`classic_bank` computes the candidates (the linearised TFP smoothed by
+Gaussians of several widths, inverted with :func:`crossing_light`),
+:class:`BankHead` weighs them per pixel, and :func:`head_routing_loss` keeps
+every candidate's gradient alive in training.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from sensor.errors import InputError
+
+from .layers import _check_4d
+
+
+def gaussian_blur(x: "torch.Tensor", sigma: float) -> "torch.Tensor":
+    """Separable Gaussian filter of ``sigma`` pixels on (B, C, H, W), replicate edges; ``sigma <= 0``: ``x``.
+
+    The kernel is truncated at ``ceil(3 sigma)`` pixels and normalised to sum 1.
+    """
+    _check_4d(x, "x")
+    if sigma <= 0:
+        return x
+    r = max(int(math.ceil(3.0 * float(sigma))), 1)
+    t = torch.arange(-r, r + 1, device=x.device, dtype=x.dtype)
+    k = torch.exp(-0.5 * (t / float(sigma)) ** 2)
+    k = k / k.sum()
+    C = x.shape[1]
+    y = F.pad(x, (r, r, 0, 0), mode="replicate")
+    y = F.conv2d(y, k.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
+    y = F.pad(y, (0, 0, r, r), mode="replicate")
+    return F.conv2d(y, k.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
+
+
+class GaussianBlur(nn.Module):
+    """Module form of :func:`gaussian_blur`."""
+
+    def __init__(self, sigma: float):
+        super().__init__()
+        self.sigma = float(sigma)
+
+    def forward(self, x):
+        return gaussian_blur(x, self.sigma)
+
+
+def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -> "torch.Tensor":
+    """The classic estimates the output head chooses among: (B, len(sigmas), H, W), target units.
+
+    The TFP over all ``windows`` (B, N, H, W) [spikes per interval], its
+    excess over each pixel's dark-event probability smoothed by a Gaussian of
+    each width in ``sigmas`` [pixels] with hot pixels left out (normalised
+    convolution, as :func:`recon.baselines.smooth_rate`; width 0 keeps each
+    pixel's own value, hot pixels take their neighbours' at 1 pixel), the
+    dark level added back and the rate inverted to light with
+    :func:`crossing_light`, divided by the PRNU gain. Below about 0.9 spikes
+    per interval this is, within ``f + 1 % + mu``, the dead-time-corrected TFP
+    of :func:`recon.baselines.tfp_dt_denoised` for the crossing reset.
+    ``maps`` (B, >= 2, H, W) = dark probability, PRNU gain and, as a third
+    channel, the hot-pixel indicator (:func:`recon.profiles.sensor_maps`);
+    None: no dark, gain 1, no hot pixels.
+    """
+    _check_4d(windows, "windows")
+    r = windows.mean(dim=1, keepdim=True)
+    if maps is None:
+        p = torch.zeros_like(r)
+        g = torch.ones_like(r)
+        w = torch.ones_like(r)
+    else:
+        _check_4d(maps, "maps")
+        if maps.shape[0] != r.shape[0] or maps.shape[-2:] != r.shape[-2:]:
+            raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(windows.shape)}", field="maps")
+        p = maps[:, 0:1].to(r.dtype)
+        g = maps[:, 1:2].to(r.dtype).clamp_min(0.05) if maps.shape[1] > 1 else torch.ones_like(r)
+        w = (1.0 - (maps[:, 2:3] > 0).to(r.dtype)) if maps.shape[1] > 2 else torch.ones_like(r)
+    x = r - p
+    xw = x * w
+
+    def smooth(sig):
+        return gaussian_blur(xw, sig) / gaussian_blur(w, sig).clamp_min(1e-6)
+
+    mu = -torch.log1p(-p.clamp(0.0, 0.999))  # expected dark events per interval
+    out = []
+    for sig in sigmas:
+        xs = torch.where(w > 0, x, smooth(1.0)) if sig <= 0 else smooth(sig)
+        out.append(crossing_light(xs + p, mu) / g)
+    return torch.cat(out, dim=1)
+
+
+def crossing_light(rate, mu) -> "torch.Tensor":
+    """Light [threshold crossings per interval] of a crossing-reset pixel from its spike ``rate`` [per interval].
+
+    A pixel whose light crosses the threshold every ``T = 1 / x`` intervals
+    (nearly deterministic for thresholds of thousands of electrons) and whose
+    dark events (Poisson, ``mu`` per interval) each fire it and discard the
+    charge fires at ``r = 1 / E[min(T, Exp(mu))] = mu / (1 - exp(-mu / x))``;
+    inverted: ``x = -mu / log(1 - mu / r)`` for ``r > mu``, else 0 (``x = r``
+    as ``mu -> 0``). Refractory loss and the one-spike-per-interval read-out
+    are left out (below about 0.9 spikes per interval they change ``x`` by
+    under 1 %; the exact inversion is :func:`recon.classic.deadtime_correct`).
+    """
+    r = rate.clamp_min(0.0)
+    small = mu < 1e-9
+    safe_mu = torch.where(small, torch.ones_like(mu), mu)
+    ratio = (safe_mu / r.clamp_min(1e-12)).clamp(max=1.0 - 1e-7)
+    x = torch.where(r > safe_mu, -safe_mu / torch.log1p(-ratio), torch.zeros_like(r))
+    return torch.where(small, r, x)
+
+
+class BankHead(nn.Module):
+    """Output head: per-pixel softmax weights over the network's image and a bank of classic estimates.
+
+    ``forward(candidates, level, rate)``: ``candidates`` (B, K, H, W) in the
+    network's scaled units (the network's output first, then
+    :func:`classic_bank`), ``level`` (B, 1, H, W) the log mean count,
+    ``rate`` (B, 1, H, W) each pixel's raw TFP [spikes per interval] (near 1:
+    read-out saturation, where the classic estimates clip). A CNN
+    (three 3x3 convolutions, LeakyReLU) maps them to K weights per pixel
+    (softmax) and one additive correction (scaled units); returns the weighted
+    sum plus the correction (B, 1, H, W), the weights and their logits (for
+    the routing term of :func:`recon.nets.rsir_loss`). The last convolution starts at
+    zero (equal weights, no correction). The correction lets the output leave
+    the candidates' range where all of them are biased the same way, as above
+    read-out saturation (about one spike per interval), where every estimate
+    clips at 1 and the light is higher.
+    """
+
+    def __init__(self, n_candidates: int, width: int = 16):
+        super().__init__()
+        self.net = nn.Sequential(nn.Conv2d(n_candidates + 2, width, 3, padding=1), nn.LeakyReLU(0.1),
+                                 nn.Conv2d(width, width, 3, padding=1), nn.LeakyReLU(0.1),
+                                 nn.Conv2d(width, n_candidates + 1, 3, padding=1))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, candidates, level, rate):
+        _check_4d(candidates, "candidates")
+        z = self.net(torch.cat([candidates, level, rate], dim=1))
+        logits, correction = z[:, :-1], z[:, -1:]
+        wts = torch.softmax(logits, dim=1)
+        return (wts * candidates).sum(dim=1, keepdim=True) + correction, wts, logits
+
+
+def head_routing_loss(logits, candidates, y, sigma: float = 2.0):
+    """Cross-entropy of the head's per-pixel weights against the locally best candidate.
+
+    ``candidates`` (B, K, H, W) and ``y`` (B, 1, H, W) in the same units;
+    the best candidate of a pixel is the one with the least absolute error
+    averaged by a Gaussian of ``sigma`` pixels around it (a single pixel's
+    error is mostly noise). The L1 term alone lets the softmax settle on the
+    candidate that wins on average and then starves the others of gradient
+    (their weights go to ~1e-7); this term keeps every candidate's gradient
+    alive where it is the better one (e.g. the unsmoothed estimate in bright
+    light).
+    """
+    err = gaussian_blur((candidates - y).abs().detach(), sigma)
+    return F.cross_entropy(logits, err.argmin(dim=1))

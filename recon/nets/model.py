@@ -1,0 +1,197 @@
+"""The recurrent RSIR-architecture network (:class:`RSIRNet`) and its training loss (:func:`rsir_loss`)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from sensor.errors import InputError
+
+from .config import RSIRConfig
+from .head import BankHead, classic_bank, head_routing_loss
+from .layers import (Denoiser, HaarDWT, HaarIDWT, LearnedDWT, LearnedIDWT, NoiseInverse, Refine, TemporalFusion,
+                     _check_4d)
+
+
+def count_parameters(model) -> int:
+    """Number of parameters (every ``nn.Parameter`` element, trainable or not)."""
+    return int(sum(p.numel() for p in model.parameters()))
+
+
+class RSIRNet(nn.Module):
+    """The recurrent RSIR-architecture network; see :mod:`recon.nets`.
+
+    ``forward(windows, maps=None)`` returns a dict of per-step lists
+    (``nim``, ``fusion``, ``denoise``, ``refine``: (B, 1, H, W) in target units;
+    ``denoise_bands``: (B, 4, H'/2, W'/2) in scaled units on the padded grid)
+    and ``output`` = the last step's ``refine``.
+    """
+
+    def __init__(self, config: RSIRConfig | None = None):
+        super().__init__()
+        self.config = cfg = config or RSIRConfig()
+        self.nim = NoiseInverse(cfg.n_maps, cfg.nim_width, cfg.nim_depth, cfg.nim_refine)
+        if cfg.learned_wavelet:
+            self.dwt, self.idwt = LearnedDWT(), LearnedIDWT()
+        else:
+            self.dwt, self.idwt = HaarDWT(), HaarIDWT()
+        self.fusion = TemporalFusion(cfg.mask_width)
+        if cfg.cumulative:
+            nn.init.constant_(self.fusion.mask[-2].bias, 5.0)
+        extra = 1 if cfg.level_input else 0
+        self.denoiser = Denoiser(cfg.width, cfg.res_blocks, cfg.attn_depth, cfg.heads, cfg.attn_window,
+                                 cfg.mlp_ratio, cfg.attn_dim, extra)
+        self.refine = Refine(cfg.mask_width, extra)
+        if cfg.cumulative:  # start as the identity on the fused bands
+            nn.init.zeros_(self.denoiser.out.weight)
+            nn.init.zeros_(self.denoiser.out.bias)
+        self.head = BankHead(1 + len(cfg.head_sigmas), cfg.head_width) if cfg.head else None
+
+    @property
+    def multiple(self) -> int:
+        """Height and width are padded to a multiple of this (Haar halving times the attention window)."""
+        return 2 * self.config.attn_window
+
+    def pad_amounts(self, H: int, W: int) -> tuple[int, int]:
+        m = self.multiple
+        return (-H) % m, (-W) % m
+
+    def _pad(self, x):
+        ph, pw = self.pad_amounts(x.shape[-2], x.shape[-1])
+        return F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+
+    def input_scale(self, windows) -> "torch.Tensor":
+        """(B, 1, 1, 1) factor from spikes per interval to the network's units (see :class:`RSIRConfig`)."""
+        cfg = self.config
+        if cfg.normalise == "mean":
+            m = windows.detach().mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-5)
+            return cfg.norm_level / m
+        return windows.new_full((windows.shape[0], 1, 1, 1), float(cfg.intensity_scale))
+
+    def map_features(self, maps, like, scale=None):
+        """Network features of the sensor maps: dark spikes per interval (scaled) and PRNU gain - 1.
+
+        ``maps`` (B, >= n_maps, H, W) or None (unknown sensor: zeros); extra channels are ignored.
+        """
+        B, _, H, W = like.shape
+        n = self.config.n_maps
+        if maps is None:
+            return like.new_zeros(B, n, H, W)
+        _check_4d(maps, "maps")
+        if maps.shape[1] < n:
+            raise InputError(f"maps need {n} channels (dark probability, PRNU gain); got {maps.shape[1]}",
+                             field="maps")
+        if maps.shape[0] != B or maps.shape[-2:] != like.shape[-2:]:
+            raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(like.shape)}", field="maps")
+        feats = maps[:, :n].to(like.dtype).clone()
+        s = self.input_scale(like) if scale is None else scale
+        feats[:, 0:1] = feats[:, 0:1] * s
+        if n > 1:
+            feats[:, 1] = feats[:, 1] - 1.0
+        return feats
+
+    def level(self, windows) -> "torch.Tensor":
+        """(B, 1, 1, 1): log10 of the mean spike rate times the trained input length (the mean count)."""
+        return torch.log10((windows.detach().mean(dim=(1, 2, 3), keepdim=True)
+                            * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
+
+    def forward(self, windows, maps=None, *, trunk_grad: bool = True):
+        """``windows`` (B, N, H, W) spikes per interval, any N >= 1 (trained with ``config.n_windows``).
+
+        ``trunk_grad=False`` runs the recurrent network without gradients (training the output head alone).
+        """
+        if self.head is None or trunk_grad:
+            out = self._trunk(windows, maps)
+        else:
+            with torch.no_grad():
+                out = self._trunk(windows, maps)
+        if self.head is not None:
+            s = out["scale"]
+            bank = classic_bank(windows, maps, self.config.head_sigmas)
+            cands = torch.cat([out["output"], bank], dim=1)
+            level = self.level(windows).expand(-1, 1, *windows.shape[-2:])
+            y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True))
+            out["head"], out["head_weights"], out["head_logits"] = y / s, wts, logits
+            out["head_candidates"] = cands
+            out["output"] = out["head"]
+        return out
+
+    def _trunk(self, windows, maps=None):
+        _check_4d(windows, "windows")
+        H, W = windows.shape[-2:]
+        s = self.input_scale(windows)
+        level = self.level(windows) if self.config.level_input else None
+        if self.config.linearise and maps is not None:
+            _check_4d(maps, "maps")
+            if maps.shape[0] != windows.shape[0] or maps.shape[-2:] != windows.shape[-2:]:
+                raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(windows.shape)}",
+                                 field="maps")
+            p = maps[:, 0:1].to(windows.dtype)
+            g = maps[:, 1:2].to(windows.dtype).clamp_min(0.05) if maps.shape[1] > 1 else 1.0
+            windows = (windows - p) / (1.0 - p) / g
+        if self.config.cumulative:
+            n = torch.arange(1, windows.shape[1] + 1, device=windows.device, dtype=windows.dtype)
+            windows = windows.cumsum(dim=1) / n.view(1, -1, 1, 1)
+        x = self._pad(windows * s)
+        feats = self._pad(self.map_features(maps, windows, s))
+        if level is not None:
+            level = level.expand(-1, 1, x.shape[-2] // 2, x.shape[-1] // 2)
+        out = {"nim": [], "fusion": [], "denoise": [], "refine": [], "denoise_bands": [], "scale": s}
+        prev = None
+        for t in range(windows.shape[1]):
+            cur_img = self.nim(x[:, t:t + 1], feats)
+            cur = self.dwt(cur_img)
+            prev = cur if prev is None else prev
+            fused, _ = self.fusion(prev, cur)
+            denoised = self.denoiser(fused, level)
+            refined = self.refine(fused, denoised, level)
+            for key, v in (("nim", cur_img), ("fusion", self.idwt(fused)), ("denoise", self.idwt(denoised)),
+                           ("refine", self.idwt(refined))):
+                out[key].append(v[..., :H, :W] / s)
+            out["denoise_bands"].append(denoised)
+            prev = fused
+        out["output"] = out["refine"][-1]
+        return out
+
+    @torch.no_grad()
+    def reconstruct(self, windows, maps=None):
+        """Inference: the final image (B, 1, H, W) in target units."""
+        return self.forward(windows, maps)["output"]
+
+
+def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
+    """Loss on every step (L1, in the network's scaled units), averaged over the steps.
+
+    Per step: |refine - y| + |fusion - y| + |denoise - y| + sum over the four
+    Haar bands of |denoise_band - y_band| + nim_loss_weight * |nim - y|,
+    each a mean over pixels; with an output head, plus |head - y| (the final
+    image) and ``head_route_weight`` x :func:`head_routing_loss`.
+    ``head_only``: the head's terms alone (training the head on a fixed
+    network). Returns (loss, dict of the mean components).
+    """
+    _check_4d(target, "target", channels=1)
+    s = out["scale"]
+    y = target * s
+    yb = model.dwt(model._pad(y))
+    n = len(out["refine"])
+    parts = {"refine": 0.0, "fusion": 0.0, "denoise": 0.0, "bands": 0.0, "nim": 0.0}
+    for t in range(n):
+        parts["refine"] = parts["refine"] + F.l1_loss(out["refine"][t] * s, y)
+        parts["fusion"] = parts["fusion"] + F.l1_loss(out["fusion"][t] * s, y)
+        parts["denoise"] = parts["denoise"] + F.l1_loss(out["denoise"][t] * s, y)
+        parts["bands"] = parts["bands"] + sum(F.l1_loss(out["denoise_bands"][t][:, i], yb[:, i]) for i in range(4))
+        parts["nim"] = parts["nim"] + F.l1_loss(out["nim"][t] * s, y)
+    total = (parts["refine"] + parts["fusion"] + parts["denoise"] + parts["bands"]
+             + model.config.nim_loss_weight * parts["nim"]) / n
+    parts = {k: float(v.detach() if hasattr(v, "detach") else v) / n for k, v in parts.items()}
+    if "head" in out:
+        head = F.l1_loss(out["head"] * s, y)
+        route = head_routing_loss(out["head_logits"], out["head_candidates"] * s, y)
+        parts["head"] = float(head.detach())
+        parts["route"] = float(route.detach())
+        head = head + model.config.head_route_weight * route
+        total = head if head_only else total + head
+    elif head_only:
+        raise InputError("head_only needs a network with an output head (config.head)", field="head")
+    return total, parts
