@@ -275,7 +275,7 @@ def main(argv=None):
     ap.add_argument("--freeze", action="store_true", help="also try drjit.freeze on the film launch's render call "
                     "(in a child; with --launch film only)")
     ap.add_argument("--freeze-timeout-s", type=float, default=60.0, help="kill the freeze trial after this long")
-    ap.add_argument("--out", default=str(HERE / "results" / "render_launch"))
+    ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--report-only", action="store_true", help="rewrite render_launch.md from the json in --out")
     a = ap.parse_args(argv)
     js = Path(a.out) / "render_launch.json"
