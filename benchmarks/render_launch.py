@@ -1,7 +1,7 @@
 """render2spike launch benchmark: where the time of one small render launch goes, and whether freezing it helps.
 
 On a GPU a 64 x 96 frame at 16 spp takes about as long as one at 256 spp: a fixed cost per launch
-dominates (``docs/performance.md``, "GPU"). This measures that cost, per frame, on the renderer's own
+dominates (``docs/performance.md``, "Render"). This measures that cost, per frame, on the renderer's own
 steps (``SceneRenderer.set_time``, then its render call, as ``SceneRenderer.launch`` makes them) for one
 variant::
 
