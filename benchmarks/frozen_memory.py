@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="rotating_disk")
     ap.add_argument("--spp", type=int, default=1024, help="samples per pixel of the measured frame (default 1024)")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "frozen_memory")
+    ap.add_argument("--out", type=Path, default=HERE / "results")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:

@@ -10,7 +10,7 @@ value by value::
     python benchmarks/frozen_replay_check.py --as-vertices ...   # meshes moved by their vertices
 
 ``--as-vertices`` moves meshes the way the film launch does (rewriting their vertices) instead of as
-instances: what the frozen launch did before 2026-11-26 evening, when this check found its replays wrong
+instances. Moved that way, the frozen launch's replays were wrong
 in 4 of 12 frames of ``translating_object`` (8 in some runs) on the LLVM variant. Run it on a GPU to see whether the
 CUDA variant shares that. The frozen launch now refuses vertex motion; this flag switches the refusal off
 for the check alone. Writes ``frozen_replay.json`` and ``frozen_replay.md`` in ``--out``.
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
     ap.add_argument("--as-vertices", action="store_true",
                     help="move meshes by rewriting their vertices (the film launch's way), not as instances")
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "frozen_replay")
+    ap.add_argument("--out", type=Path, default=HERE / "results")
     a = ap.parse_args(argv)
     if a.frames < 1 or a.spp < 1:
         ap.error("--frames and --spp take positive counts")

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The checks a session with a lent GPU machine runs, in one call (the machine is lent by the minute):
+# The GPU check: what to run on a lent GPU machine, as one prepared call (the machine is lent by the minute):
 #   1. install the Mitsuba/Dr.Jit build carried in .whl/site.tar.xz (that machine reaches no package index)
 #      and this checkout (editable, no dependencies: numpy, numba, torch... are already there);
 #   2. the render-stage tests (photometry, motion, reproducibility, writer...) on the CUDA variant, forced by
@@ -60,7 +60,7 @@ stamp "render tests exit $rc ($(tail -1 "$OUT/pytest_render_cuda.txt"))"
 [ "$BENCH_T" -gt 0 ] && {
 stamp "benchmark (start no point after ${BENCH_T} s)"
 python3 benchmarks/render_gpu.py --frames 16 --cpu-frames 4 --time-limit-s "$BENCH_T" --point-timeout-s 120 \
-  --cpu-ref benchmarks/results/gpu_2026-11-26/cpu_2core/render_gpu.json --out "$OUT/bench" ${BENCH_ARGS:-} \
+  --cpu-ref benchmarks/results/render_gpu_cpu_2core.json --out "$OUT/bench" ${BENCH_ARGS:-} \
   > "$OUT/bench.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "benchmark exit $rc"

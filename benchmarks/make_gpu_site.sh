@@ -5,7 +5,7 @@
 # that machine already has (a .pth entry: its own attrs, typing-extensions... win).
 # Kept: Mitsuba's cuda_ad_spectral, llvm_ad_spectral and scalar_spectral variants (the ones render2spike
 # picks from) and every plugin (a user's XML scene may name any). Dropped: the other variants (rgb, mono,
-# polarized), headers and type stubs. Versions are pinned: those the H100 session of 2026-11-26 ran.
+# polarized), headers and type stubs. Versions are pinned: those the GPU check has run on an H100.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)

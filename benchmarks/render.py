@@ -9,7 +9,7 @@ One command::
 writes ``benchmarks/results/render.md`` and ``render.json`` (atomically). Every
 measurement runs in a fresh subprocess (its own JIT and memory); ``--old PATH``
 runs the same measurement with ``PYTHONPATH=PATH`` (e.g. a ``git worktree add
-/tmp/perf-old main`` checkout), so old and new are compared in one session. The
+/tmp/perf-old main`` checkout), so old and new are compared in one run. The
 load average is recorded before and after.
 
 Sections
@@ -42,8 +42,8 @@ Sections
    one launch plus 1/``VERIFY_EVERY`` of a verification launch now; two halves before).
    **Extrapolated** from those frames.
 
-Every section renders with the film launch (``launch="film"``, :func:`_film`), the default before
-2026-11-26, so that its figures stay comparable run to run; the default launch now (``auto``: the frozen
+Every section renders with the film launch (``launch="film"``, :func:`_film`), so that its figures
+stay comparable to a bare ``mi.render``; the default launch (``auto``: the frozen
 launch on LLVM and CUDA) is timed against it by ``benchmarks/render_frozen.py``.
 """
 
@@ -76,7 +76,7 @@ def _quiet():
 
 
 def _film():
-    """``{"launch": "film"}`` where the code measured has a choice of launch (since 2026-11-26 the default is
+    """``{"launch": "film"}`` where the code measured has a choice of launch (the default is
     ``auto``, the frozen launch on LLVM and CUDA), else ``{}``: this benchmark times Mitsuba's own render,
     its bare blocks are ``mi.render`` of the pipeline's loaded scene, and ``--old`` runs older code that
     has no ``launch``. The frozen launch, and the job with it against the same bare launch:
@@ -451,12 +451,11 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
               "background writer, journal, manifest). It includes the noise verification launches actually made "
               "(every `VERIFY_EVERY`-th frame and the first; the first frame's second render is the pilot's "
-              "t = 0 render at the frame spp where the pilot made one, no launch, since 2026-11-24 09:00; "
-              "before, 1 extra launch per block of up to `VERIFY_EVERY` frames); 'without verification' takes "
+              "t = 0 render at the frame spp where the pilot made one, no launch); 'without verification' takes "
               "one bare frame per verification launch made out. 'per block': each pipeline block over its neighbouring bare block. "
               "'median block': the median of those, which one block disturbed by another process moves less. "
               "Kernel compilation in a pipeline block (a job's freshly loaded scene gets a new kernel hash; "
-              "Dr.Jit's kernel history gives its time) is taken out of the block since 2026-11-26 (in the JSON: "
+              "Dr.Jit's kernel history gives its time) is taken out of the block (in the JSON: "
               "`compile_s_per_block`). "
               "'CPU': the same ratio as 'overhead' in process CPU time (all threads); Dr.Jit's worker thread "
               "busy-waits between kernels, so both cores read as busy in either block and this ratio follows the "

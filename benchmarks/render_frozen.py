@@ -21,7 +21,7 @@ out (a diagnostic, not a job: what the rest of the job costs).
 pilot, the noise budget, the verification renders and the frame files included; the frozen launch records
 once per sample count it meets).
 
-    python benchmarks/render_frozen.py --out benchmarks/results/frozen_launch --rounds 3 --job --pipeline
+    python benchmarks/render_frozen.py --rounds 3 --job --pipeline
 
 Writes ``frozen_launch.json`` and ``frozen_launch.md`` in ``--out``.
 """
@@ -121,8 +121,8 @@ def file_create_probe(folder: Path, n: int = 200) -> dict:
 
     Why: on the 2-CPU development VM (ext4 without a journal), ``perf`` put most of a file creation's time in
     the inode allocator's scan for recently deleted inodes (``recently_deleted``, ``find_inode_bit``): 0.07-0.85
-    ms of kernel CPU per new file on 2026-11-26, against ~0.03 ms in an earlier round, as the benchmarks and
-    tests had deleted more or fewer files. So the render job's overhead per frame is reported beside it."""
+    ms of kernel CPU per new file, at other times ~0.03 ms, as the benchmarks and tests had deleted more or
+    fewer files. So the render job's overhead per frame is reported beside it."""
     import resource
     data = b"\0" * 7000
     names = [(str(folder / f".probe-{os.getpid()}-{i}.part"), str(folder / f".probe-{os.getpid()}-{i}.exr"))
@@ -228,7 +228,7 @@ def report(res: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=HERE / "results" / "frozen_launch", help="folder for the report")
+    ap.add_argument("--out", type=Path, default=HERE / "results", help="folder for the report")
     ap.add_argument("--rounds", type=int, default=3, help="alternating rounds per point (default 3)")
     ap.add_argument("--frames", type=int, default=24, help="timed frames per child (default 24)")
     ap.add_argument("--warm", type=int, default=4, help="untimed frames first (default 4)")

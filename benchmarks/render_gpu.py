@@ -2,7 +2,7 @@
 
 One command per machine::
 
-    python benchmarks/render_gpu.py --out benchmarks/results/gpu_X            # every variant that works here
+    python benchmarks/render_gpu.py                                          # every variant that works here
     python benchmarks/render_gpu.py --variants llvm_ad_spectral --out DIR     # the CPU rows only
     python benchmarks/render_gpu.py --cpu-ref OTHER/render_gpu.json --out DIR # and compare with another machine
 
@@ -195,7 +195,7 @@ def main(argv=None):
     ap.add_argument("--time-limit-s", type=float, default=None,
                     help="start no new point after this many seconds (the report keeps what was measured)")
     ap.add_argument("--point-timeout-s", type=float, default=600.0, help="give up one point after this long")
-    ap.add_argument("--out", default=str(HERE / "results" / "gpu"))
+    ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--report-only", action="store_true",
                     help="rewrite render_gpu.md from the render_gpu.json in --out (e.g. with a newer --cpu-ref)")
     a = ap.parse_args(argv)

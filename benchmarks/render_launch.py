@@ -1,7 +1,7 @@
 """render2spike launch benchmark: where the time of one small render launch goes, and whether freezing it helps.
 
 On a GPU a 64 x 96 frame at 16 spp takes about as long as one at 256 spp: a fixed cost per launch
-dominates (``docs/performance.md``, "GPU"). This measures that cost, per frame, on the renderer's own
+dominates (``docs/performance.md``, "Render"). This measures that cost, per frame, on the renderer's own
 steps (``SceneRenderer.set_time``, then its render call, as ``SceneRenderer.launch`` makes them) for one
 variant::
 
@@ -275,7 +275,7 @@ def main(argv=None):
     ap.add_argument("--freeze", action="store_true", help="also try drjit.freeze on the film launch's render call "
                     "(in a child; with --launch film only)")
     ap.add_argument("--freeze-timeout-s", type=float, default=60.0, help="kill the freeze trial after this long")
-    ap.add_argument("--out", default=str(HERE / "results" / "render_launch"))
+    ap.add_argument("--out", default=str(HERE / "results"))
     ap.add_argument("--report-only", action="store_true", help="rewrite render_launch.md from the json in --out")
     a = ap.parse_args(argv)
     js = Path(a.out) / "render_launch.json"

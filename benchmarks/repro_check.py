@@ -101,7 +101,7 @@ def main(argv=None):
     ap.add_argument("--duration", type=float, default=0.004, help="camera seconds rendered per run (default 0.004)")
     ap.add_argument("--launch", default="auto", choices=("auto", "film", "frozen"),
                     help="the render's --launch (default auto: frozen on LLVM and CUDA variants)")
-    ap.add_argument("--out", default=str(HERE / "results" / "repro"))
+    ap.add_argument("--out", default=str(HERE / "results"))
     a = ap.parse_args(argv)
     if min(a.spp) < 1 or not a.duration > 0:
         ap.error(f"every --spp must be >= 1 and --duration > 0 (got {a.spp}, {a.duration})")

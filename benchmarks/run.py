@@ -192,7 +192,7 @@ def run_one(cfg: dict) -> dict:
             cpu += time.process_time() - c
             n_int += blk.shape[0]
             # untimed; the writer thread writes this block meanwhile, so most of the write is outside the timed
-            # run: the kernel's time is then close to that with no output at all (4 s of frames, 2026-11-26,
+            # run: the kernel's time is then close to that with no output at all (4 s of frames,
             # load 0.5-1.1: 2.23-2.33 s, against 2.12-2.19 s with sink "none" and 2.69-2.82 s counting after
             # the drain). The strongest baseline for the command, which overlaps its writes with the next
             # block: kept so.

@@ -5,11 +5,13 @@ same scene, resolution and spp, per CPU measured against) must pair the right ro
 correctly. ``benchmarks/repro_check.py``: its frame comparison must see a one-ulp difference in either
 channel and a different reference light level. ``benchmarks/render_launch.py``: a frame's split from its
 clock readings and kernel history, medians without the warm-up frames, and a table with each value under its
-own column, every freeze outcome and the load.
+own column, every freeze outcome and the load. And every benchmark script or result file the docs name, and the
+CPU reference the GPU check reads, exists.
 """
 
 import importlib.util
 import json
+import re
 import sys
 
 import numpy as np
@@ -205,3 +207,15 @@ def test_the_file_creation_probe_leaves_its_folder_as_it_found_it(tmp_path):
     got = mod.file_create_probe(tmp_path, n=5)
     assert got["wall_ms"] > 0 and got["sys_ms"] >= 0
     assert [p.name for p in tmp_path.iterdir()] == ["frame.exr"]
+
+
+def test_files_the_docs_and_the_gpu_check_name_exist():
+    docs = [ROOT / "README.md", ROOT / "benchmarks" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    named = set()
+    for doc in docs:
+        named |= {(doc.name, m) for m in re.findall(r"\b((?:benchmarks|docs)/[\w/.\-]*\w)", doc.read_text())}
+    gpu_check = (ROOT / "benchmarks" / "gpu_check.sh").read_text()
+    named |= {("gpu_check.sh", m) for m in re.findall(r"--cpu-ref (\S+)", gpu_check)}
+    assert any(path.startswith("benchmarks/results/") for _, path in named)
+    missing = sorted((doc, path) for doc, path in named if not (ROOT / path).exists())
+    assert not missing, f"named but not in the repository: {missing}"
