@@ -325,7 +325,7 @@ def m_write(cfg):
     """Section 0: one frame write (``sensor.io.frames.write_frame``: temp file, one write, rename) against the
     same frame written through the OpenEXR binding (the writer before, still the fallback), alternating,
     with a render job's header attributes; median milliseconds per frame."""
-    from sensor.io import frames as F
+    from sensor.io import exr as F
     H, W, n = int(cfg["height"]), int(cfg["width"]), int(cfg.get("repeats", 40))
     rng = np.random.default_rng(0)
     phi = rng.uniform(0, 1e12, (H, W)).astype(np.float32)

@@ -20,30 +20,24 @@ from sensor.io.fileio import atomic_path, provenance, write_json_atomic, write_t
 
 
 def simulate_frames(frames_dir, profile, model: str = "elssim", seed: int = 0, progress: bool = True):
-    """Stream a frames folder through :class:`sensor.SpikeSimulator`.
+    """Stream a frames folder through :class:`sensor.SpikeSimulator` (:func:`sensor.io.stream.open_stream`).
 
     Returns the spikes as :class:`sensor.io.spikefile.PackedSpikes` (bit-packed, 1 bit per pixel-interval)
     and the frame sequence.
     """
-    import sensor
-    from sensor.io.frames import read_frames
-    from sensor.io.spikefile import PackedSpikes
-    seq = read_frames(frames_dir)
-    sim = sensor.SpikeSimulator(profile, model, seed)
-    parts = []
+    from sensor.io.stream import open_stream
+    stream = open_stream(frames_dir, profile, model, seed).start()
     try:
         from tqdm.auto import tqdm
-        it = tqdm(range(len(seq)), unit="frame", desc="simulate", disable=not progress, dynamic_ncols=True)
+        bar = tqdm(total=stream.total, unit="interval", desc="simulate", disable=not progress, dynamic_ncols=True)
     except ImportError:  # pragma: no cover
-        it = range(len(seq))
-    for i in it:
-        fr = seq.read(i)
-        rate_e = sensor.photoelectron_rate(fr.phi, profile)  # a new array, handed over (owned)
-        # lookahead: the kernel's threads run each block while this thread reads the next frames
-        parts.extend(sim.iter_feed_packed(rate_e[None], np.array([fr.time_s]), owned=True, lookahead=True))
-    parts.extend(sim.iter_finish_packed())
-    packed = np.concatenate(parts) if parts else np.zeros((0, sim.n_bytes), np.uint8)
-    return PackedSpikes(packed, profile.shape), seq
+        bar = None
+    try:
+        spikes = stream.collect(None if bar is None else bar.update)
+    finally:
+        if bar is not None:
+            bar.close()
+    return spikes, stream.source.frames
 
 
 def _to_uint8(img, vmax=None):

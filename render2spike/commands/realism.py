@@ -91,7 +91,7 @@ def run(args) -> int:
 
     import numpy as np
 
-    from render2spike.commands.simulate import fit_profile
+    from sensor.io.stream import profile_for_input as fit_profile
     from sensor.errors import InputError
     from sensor.profile import SensorProfile
     from sensor.analysis.realism import parse_models, realism, write_report

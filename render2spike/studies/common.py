@@ -71,17 +71,17 @@ def simulate_clip(rate_kf, t_s, profile, model_spec: str, seed: int, preroll: in
     ``rate_kf`` float32 (K, H, W) [e-/interval]. Interval m of the result is interval m of the clip
     (the one starting at ``t_s[0] + m * interval_s``).
     """
-    from sensor import simulate
+    from sensor.io.stream import open_stream
     from sensor.rates import n_intervals_spanned
     model, _ = parse_model_spec(model_spec)
     T = n_intervals_spanned(t_s[0], t_s[-1], profile.interval_s)
     r, t = preroll_keyframes(rate_kf, t_s, int(preroll), seed, profile.interval_s)
-    spikes = simulate(r, profile, model, seed=int(seed), t_s=t)
-    out = spikes[int(preroll):int(preroll) + T]
-    if out.shape[0] != T:
-        raise InputError(f"pre-rolled stream holds {spikes.shape[0]} intervals, expected {preroll} + {T}",
+    spikes = open_stream(r, profile, model, int(seed), t_s=t).start(warm_up=False).collect()
+    clip = range(len(spikes))[int(preroll):int(preroll) + T]
+    if len(clip) != T:
+        raise InputError(f"pre-rolled stream holds {len(spikes)} intervals, expected {preroll} + {T}",
                          field="preroll")
-    return out
+    return spikes.window(clip.start, clip.stop)
 
 
 def unsettled_fraction(rate0, threshold_e: float, preroll: int) -> float:

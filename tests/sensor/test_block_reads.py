@@ -8,7 +8,7 @@ import pytest
 
 import sensor
 from render2spike.cli import main
-from render2spike.commands.simulate import RateSource, plan_reads
+from sensor.io.reader import RateSource, plan_reads
 from sensor.io.fastio import count_bad, scale_checked
 from sensor.rates import RateSchedule, block_keyframe_rows
 from sensor.units import photoelectron_rate, photoelectron_scale
@@ -147,7 +147,7 @@ def test_cli_default_block_reads_equal_fixed_chunks_and_the_python_api(tmp_path)
 
 
 def test_chunk_pool_reuses_only_arrays_nobody_holds():
-    from render2spike.commands.simulate import _ChunkPool
+    from sensor.io.reader import ChunkPool as _ChunkPool
     pool = _ChunkPool(keep=3)
     a = pool.take((2, 3))
     a_id = id(a)

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sensor.io import frames as F
+from sensor.io import exr as F
 from sensor.io.frames import read_frame, read_phi, write_frame
 
 OpenEXR = pytest.importorskip("OpenEXR")

@@ -10,7 +10,7 @@ import pytest
 
 import sensor
 from render2spike.cli import build_parser, main, requested_command
-from render2spike.commands.simulate import RateSource
+from sensor.io.reader import RateSource
 from sensor.io.frames import _exr_channel_fast, read_frame, read_phi, write_frame
 from sensor.io.spikefile import SpikeWriter, count_bits, unpack_frames
 
@@ -293,7 +293,7 @@ def test_npy_rows_are_map_views_released_after_use(tmp_path, dtype):
 def test_read_plan_covers_two_blocks_of_keyframes_within_a_memory_cap():
     from types import SimpleNamespace as NS
 
-    from render2spike.commands.simulate import plan_reads
+    from sensor.io.reader import plan_reads
     sim = NS(block=1000, interval_s=50e-6)  # 50 ms per block: 50 keyframes at 1 kHz
     kf = NS(per_interval=False, n=2001, t_s=np.arange(2001) * 1e-3, shape=(250, 400))
     bounds, ahead = plan_reads(kf, sim, 32)

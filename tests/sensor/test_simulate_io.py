@@ -5,7 +5,8 @@ import pytest
 
 import sensor
 from render2spike.cli import main
-from render2spike.commands.simulate import RESERVE_MAX_BYTES, RateSource, _NpzMember, reserve_count
+from sensor.io.npzrows import NpzMember as _NpzMember
+from sensor.io.reader import RESERVE_MAX_BYTES, RateSource, reserve_count
 from sensor.io.spikefile import count_bits
 
 
