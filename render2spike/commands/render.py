@@ -67,7 +67,7 @@ def add_scene_options(p) -> None:
                         "$RENDER2SPIKE_VARIANT if set, else auto; this option wins over the variable. The variant's "
                         "back end (cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends "
                         "are never mixed in one folder, and a rerun must ask for the same back end to resume")
-    from render2spike.render.frozen import DEFAULT_LAUNCH, LAUNCHES
+    from render2spike.render.launch import DEFAULT_LAUNCH, LAUNCHES
     p.add_argument("--launch", default=DEFAULT_LAUNCH, choices=LAUNCHES,
                    help="how each frame's render is launched. frozen: the launch is recorded once with "
                         "drjit.freeze and replayed (own camera rays, wavelength sampling and per-pixel sums around "
