@@ -121,7 +121,7 @@ def run(args) -> int:
                        launch=args.launch)
     m = res.manifest
     ts = m.get("temporal_sampling", {})
-    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, {m.get('launch', 'film')} launch; {res.spp} spp; "
+    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, {m.get('launch')} launch; {res.spp} spp; "
           f"{ts.get('n_refined', 0)} added by adaptive refinement; render/shot noise "
           f"{(m.get('render_noise_ratio') or {}).get('mean', float('nan')):.3f}; {res.seconds:.1f} s")
     return 0

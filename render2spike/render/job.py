@@ -100,13 +100,10 @@ def _render_locked(scene: Scene, folder: FramesFolder, overwrite: bool, progress
     folder.state["calibration"] = rnd.calibration
     spp, budget, var_floor = _noise_budget(rnd, scene, folder, log)
     source = FrameSource(scene, var_floor, rnd.rate_scale(), progress)
-    frames = _Keyframes(rnd, scene, source, spp, launch, scene_hash)
-    def frame_at(tick: int):  # a frame the folder holds is read back; the others are rendered and written
-        return folder.read_phi(tick) if folder.saved(tick) is not None else frames.render(tick, folder)
-
+    frames = _Keyframes(rnd, scene, folder, source, spp, launch, scene_hash)
     try:
         with folder.writing():
-            ticks = source.walk(frame_at)
+            ticks = source.walk(frames.at)  # each tick: the folder's frame, or rendered, written and journalled
             # the writer finishes the queued frames and closes (fsyncs) the journal, in its thread, while the
             # manifest is prepared here; both are done (the thread joined) before the manifest is written
             folder.stop_writing()
@@ -172,10 +169,11 @@ def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log):
 
 
 class _Keyframes:
-    """Renders the keyframe at a tick, checks it and hands it to the folder's writer with its header."""
+    """The keyframe at a tick: read back from the folder, or rendered, checked and handed to its writer."""
 
-    def __init__(self, rnd, scene: Scene, source: FrameSource, spp: int, launch: str, scene_hash: str):
-        self.rnd, self.scene, self.source = rnd, scene, source
+    def __init__(self, rnd, scene: Scene, folder: FramesFolder, source: FrameSource, spp: int, launch: str,
+                 scene_hash: str):
+        self.rnd, self.scene, self.folder, self.source = rnd, scene, folder, source
         self.spp, self.launch, self.scene_hash = int(spp), launch, scene_hash
         self.W = int(scene.render["noise"]["window_intervals"])
         self.K = keyframes_per_window(self.W, scene.profile.interval_s, float(scene.render["keyframe_rate_hz"]))
@@ -183,8 +181,12 @@ class _Keyframes:
                                    "variant": rnd.variant, "launch": launch})
         self.n_rendered = 0
 
-    def render(self, tick: int, folder: FramesFolder):
-        """Render the frame at ``tick``, check it, queue it for writing; -> its Phi (float64)."""
+    def at(self, tick: int):
+        """Phi (float64) of the keyframe at ``tick``: the folder's, else :meth:`render`'s."""
+        return self.folder.read_phi(tick) if self.folder.saved(tick) is not None else self.render(tick)
+
+    def render(self, tick: int):
+        """Render the frame at ``tick``, check it, queue it for writing (and journalling); -> its Phi."""
         rnd, scene, t_s = self.rnd, self.scene, self.source.time(tick)
         # the achieved ratio is measured on the first and every VERIFY_EVERY-th (128th) frame (one extra render each)
         f = rnd.render_frame(t_s, int(scene.render["seed"]), self.spp, variance=self.n_rendered % VERIFY_EVERY == 0)
@@ -204,7 +206,7 @@ class _Keyframes:
                  "seeds": f["seeds"], "made_by": self.made_by, "scene": scene.name}
         # the float64 arrays are handed over as they are (nothing here changes them later): the writer thread
         # rounds them to the file's float32, off the render loop
-        folder.write(tick, t_s, f["phi"], f["lux"], ratio, attrs)
+        self.folder.write(tick, t_s, f["phi"], f["lux"], ratio, attrs)
         self.n_rendered += 1
         return f["phi"]
 

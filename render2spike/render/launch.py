@@ -13,7 +13,8 @@ channels (``Phi``, ``E``, float64 (H, W), in the film's raw units):
 
 :class:`.renderer.SceneRenderer` poses the scene, splits a frame's samples into launches
 (:meth:`Launch.max_samples`) and turns the raw channels into physical units; it sees a launch only through
-:class:`Launch`. A launch that takes several keyframes at once would implement the same interface.
+:class:`Launch`. A launch of several keyframes at once plugs in here: a :class:`Launch` whose ``launch``
+takes one pose per keyframe, behind a renderer call that renders those keyframes together.
 
 Which launch a render takes is decided in one place, :func:`resolve_launch`: ``film`` and ``frozen`` are
 taken as named; ``auto`` (the default) takes ``frozen`` on a JIT variant unless the scene has a moving mesh
