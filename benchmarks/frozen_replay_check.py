@@ -67,8 +67,9 @@ def main(argv=None) -> int:
     if a.frames < 1 or a.spp < 1:
         ap.error("--frames and --spp take positive counts")
     if a.as_vertices:
+        import render2spike.render.frozen as fz
         import render2spike.render.renderer as rm
-        rm.instance_moving_meshes = lambda mi, d, m: {}
+        fz.instance_moving_meshes = lambda mi, d, m: {}
         rm._check_frozen_motion = lambda moving: None
     res = {"when": time.strftime("%Y-%m-%d %H:%M"), "command": "python benchmarks/frozen_replay_check.py "
            + " ".join(sys.argv[1:] if argv is None else argv), "as_vertices": a.as_vertices,

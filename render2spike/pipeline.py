@@ -122,8 +122,8 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     from sensor.errors import InputError
     from sensor.io.spikefile import write_spikes
 
-    from .render.frozen import check_launch
-    from .render.job import _refusal_hint, launch_taken, render_scene
+    from .render.job import render_scene
+    from .render.launch import check_launch, launch_taken, refusal_hint
     from .render.scene import load_scene
 
     out = Path(out)
@@ -152,7 +152,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         diff = [k for k in now if old.get(k) != now[k]]
         if diff:
             # (the render's own advice: a --variant or --launch only where it would resume the frames)
-            hint = _refusal_hint(sc, used, taken, launch, old.get("scene_hash"), old.get("variant"), was_launch,
+            hint = refusal_hint(sc, used, taken, launch, old.get("scene_hash"), old.get("variant"), was_launch,
                                  fm, {}) if "scene_hash" in diff else ""
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)

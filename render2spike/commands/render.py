@@ -67,7 +67,7 @@ def add_scene_options(p) -> None:
                         "$RENDER2SPIKE_VARIANT if set, else auto; this option wins over the variable. The variant's "
                         "back end (cuda, llvm, scalar) is part of the folder's scene hash: frames of two back ends "
                         "are never mixed in one folder, and a rerun must ask for the same back end to resume")
-    from render2spike.render.frozen import DEFAULT_LAUNCH, LAUNCHES
+    from render2spike.render.launch import DEFAULT_LAUNCH, LAUNCHES
     p.add_argument("--launch", default=DEFAULT_LAUNCH, choices=LAUNCHES,
                    help="how each frame's render is launched. frozen: the launch is recorded once with "
                         "drjit.freeze and replayed (own camera rays, wavelength sampling and per-pixel sums around "
@@ -121,7 +121,7 @@ def run(args) -> int:
                        launch=args.launch)
     m = res.manifest
     ts = m.get("temporal_sampling", {})
-    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, {m.get('launch', 'film')} launch; {res.spp} spp; "
+    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, {m.get('launch')} launch; {res.spp} spp; "
           f"{ts.get('n_refined', 0)} added by adaptive refinement; render/shot noise "
           f"{(m.get('render_noise_ratio') or {}).get('mean', float('nan')):.3f}; {res.seconds:.1f} s")
     return 0

@@ -17,7 +17,7 @@ of Debian 12) Dr.Jit *aborts the process*, which no ``try`` can catch. So:
 The environment variable ``RENDER2SPIKE_VARIANT`` (or the commands' ``--variant``,
 which wins over it) forces a variant (e.g. ``llvm_ad_spectral`` on a machine with
 a GPU, to keep to the CPU); ``auto`` or empty means the automatic choice. The variant
-is part of every frames folder's scene hash (``job.settings_of``), so frames
+is part of every frames folder's scene hash (``launch.settings_of``), so frames
 rendered on a GPU and on a CPU are never mixed in one folder.
 """
 

@@ -1,7 +1,7 @@
 """The frozen launch: one frame's render recorded once with ``drjit.freeze`` and replayed after.
 
 Why. Every ``mi.render`` call traces the whole integrator anew on the host (1.4 ms of a 3.7 ms
-frame at 32 x 48 and 16 spp on the 2-core CPU; 96 % of a small frame on a GPU), and
+frame at 32 x 48 and 16 spp on a 2-core CPU; 96 % of a small frame on a GPU), and
 ``drjit.freeze``, which records a launch once and replays its kernels, fails on Mitsuba 3.9.1 as
 soon as a perspective camera with a ``specfilm`` is among its inputs ("VarType mismatch 8 != 14",
 even for a function that does nothing with it), and ``specfilm`` allocates its image block inside
@@ -29,32 +29,31 @@ what the camera and the ``specfilm`` did, in Dr.Jit, around the scene integrator
 3. **Per-pixel sums** with ``drjit.block_reduce`` (its evaluated mode) over each pixel's ``spp``
    consecutive samples (box filter: every sample lands in its own pixel, weight 1), divided by
    ``spp``. No atomic adds: the sum's order is fixed, so a GPU gives the same frame on every run
-   too (measured on an H100: every value of 5 frames equal in two runs at 64, 256 and 1024 spp,
-   ``benchmarks/results/gpu_2026-11-26/h100_frozen_run2/repro``; the film launch's atomic sums left
-   1.4-64 % of the values differing there). The price: the samples' channel values are held in memory
-   before the sums, 8 bytes a sample, so the renderer takes a frame of more than
-   :data:`MAX_SAMPLES_PER_LAUNCH` samples (512 MiB of them; 671 spp at 250 x 400) in several
+   too (on an H100 every value of 5 frames was equal in two runs at 64, 256 and 1024 spp, where the
+   film launch's atomic sums left 1.4-64 % of the values differing). The price: the samples' channel
+   values are held in memory before the sums, 8 bytes a sample, so the renderer takes a frame of more
+   than :data:`MAX_SAMPLES_PER_LAUNCH` samples (512 MiB of them; 671 spp at 250 x 400) in several
    launches of at most that many, each with its own seed
    (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`); a launch of 2^32 samples or
    more (a sensor of that many pixels at 1 spp) is refused.
 4. **Moving meshes as instances.** The film launch moves a mesh (a ``cube`` or a mesh file) by
    rewriting its vertices. Replays after such a rewrite traced a stale acceleration structure on
-   the LLVM variant: the bundled ``translating_object`` had wrong geometry in 4 of 12 frames in
-   each of three recorded runs (``benchmarks/frozen_replay_check.py --as-vertices``; 8 in some
-   unrecorded ones; on an H100 the CUDA variant's replays were right). So the frozen launch loads
-   each moving mesh, at its t = 0 pose, as an ``instance`` of a one-shape ``shapegroup``, and moves
-   the instance by the transform from that pose to the current one, as it moves a rectangle or the
-   camera (:func:`instance_moving_meshes`, :func:`relative_motion`): every replay then equals the
-   unfrozen function, on both back ends, and the mesh's smooth normals are made from the same
-   world-space vertices as the film launch's. A moving mesh that emits light, or whose motion
-   changes its shape (a scale that changes over time), cannot move that way: ``auto`` takes the
-   film launch for its scene (:func:`frozen_obstacle`).
+   the LLVM variant: the bundled ``translating_object`` had wrong geometry in 4 of 12 frames
+   (``benchmarks/frozen_replay_check.py --as-vertices``; on an H100 the CUDA variant's replays were
+   right). So the frozen launch loads each moving mesh, at its t = 0 pose, as an ``instance`` of a
+   one-shape ``shapegroup``, and moves the instance by the transform from that pose to the current one,
+   as it moves a rectangle or the camera (:func:`instance_moving_meshes`, :func:`relative_motion`):
+   every replay then equals the unfrozen function, on both back ends, and the mesh's smooth normals are
+   made from the same world-space vertices as the film launch's. A moving mesh that emits light, or
+   whose motion changes its shape (a scale that changes over time), cannot move that way: ``auto``
+   takes the film launch for its scene (:func:`frozen_obstacle`).
 
 The result is the pair of raw channels (``Phi``, ``E``) that the film launch gives, in the same
-units, so :mod:`.photometry` applies unchanged. It is the default (``launch="auto"``,
-:func:`resolve_launch`) on Mitsuba's LLVM and CUDA variants since its render tests passed on an H100
-(2026-11-26); the scalar variants, which cannot record, keep the film launch. :class:`FrozenLaunch` keeps one frozen function;
-``frozen=False`` runs the same function without freezing (the tests hold the two bitwise equal).
+units, so :mod:`.photometry` applies unchanged. :class:`FrozenLaunch` implements the launch interface
+(:class:`.launch.Launch`); ``launch="auto"`` takes it on Mitsuba's LLVM and CUDA variants
+(:func:`.launch.resolve_launch`); the scalar variants, which cannot record, take the film launch.
+:class:`FrozenLaunch` keeps one frozen function; ``frozen=False`` runs the same function without
+freezing (the tests hold the two bitwise equal).
 """
 
 from __future__ import annotations
@@ -65,48 +64,16 @@ import numpy as np
 GRID_STEP_NM = 1.0
 #: equal-probability parts of the wavelength density (``lambda_j`` table of ``N_QUANTILES + 1`` points)
 N_QUANTILES = 4096
-#: how a frame is launched (:class:`render2spike.render.renderer.SceneRenderer`): ``auto`` (the default:
-#: :func:`resolve_launch`), ``film`` (the integrator's own render into Mitsuba's ``specfilm``) or ``frozen``
-#: (this module)
-LAUNCHES = ("auto", "film", "frozen")
-#: the launch taken when none is named, the same in code, CLI and docs
-DEFAULT_LAUNCH = "auto"
-#: the frozen launch's estimator, in the frames' scene hash: a change to how it samples or sums (grid, table,
-#: order of the sampler's dimensions, how a sample count is split into launches) must bump it, so that no
-#: folder mixes frames of two estimators. 1: the first (commit 1d40865); 2: launches of more than
-#: :data:`MAX_SAMPLES_PER_LAUNCH` samples split, moving meshes as instances of the unposed mesh (6587769);
-#: 3: those instances start from the mesh's t = 0 pose (its smooth normals as in the film launch). The
-#: manifest records it as ``launch_estimator`` from 3 on
+#: the frozen launch's estimator, in the frames' scene hash (:func:`.launch.settings_of`) and recorded as
+#: ``launch_estimator``: a change to how it samples or sums (grid, table, order of the sampler's dimensions,
+#: how a sample count is split into launches, how moving meshes are instanced) must bump it, so that no folder
+#: mixes frames of two estimators
 ESTIMATOR_VERSION = 3
 #: the most samples one frozen launch takes (2^26: 512 MiB of held channel values, 8 bytes a sample); a frame
 #: that needs more is taken in several launches of at most this many, each with its own seed
 #: (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`). A constant, not the machine's memory:
 #: the split is part of the estimator, so frames do not depend on where they were rendered
 MAX_SAMPLES_PER_LAUNCH = 1 << 26
-
-
-def check_launch(launch: str) -> str:
-    """``launch`` if it is one of :data:`LAUNCHES`; else :class:`sensor.errors.InputError` listing them."""
-    if launch not in LAUNCHES:
-        from sensor.errors import InputError
-        raise InputError(f"unknown launch '{launch}': choose one of {', '.join(LAUNCHES)}", field="--launch")
-    return launch
-
-
-def resolve_launch(launch: str, variant: str, scene=None) -> str:
-    """The launch a render with ``variant`` (a Mitsuba variant name) takes when ``launch`` is asked for.
-
-    ``film`` and ``frozen`` are taken as named; ``auto`` is ``frozen`` on Mitsuba's JIT variants
-    (``llvm_*``, ``cuda_*``: ``drjit.freeze`` records there) and ``film`` on the scalar ones (no JIT to
-    record; also the fallback when no libLLVM is found), and ``film`` for a ``scene``
-    (:class:`~render2spike.render.scene.Scene`) the frozen launch cannot render (:func:`frozen_obstacle`).
-    Raises :class:`sensor.errors.InputError` naming the valid choices (:func:`check_launch`) for any other
-    name."""
-    if check_launch(launch) != "auto":
-        return launch
-    if not str(variant).startswith(("llvm_", "cuda_")):
-        return "film"
-    return "film" if scene is not None and frozen_obstacle(scene) else "frozen"
 
 
 #: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
@@ -237,6 +204,22 @@ def _root(exc: BaseException) -> BaseException:
     return exc
 
 
+def check_camera(cam: dict) -> None:
+    """The frozen launch makes the rays of a plain pinhole camera (:meth:`FrozenLaunch.primary_rays`): refuse a
+    camera dict that asks for more, so that a change to the builder cannot make its frames drift."""
+    film = cam.get("film", {})
+    ok = (cam.get("type") == "perspective" and cam.get("fov_axis") == "x" and film.get("type") == "specfilm"
+          and film.get("rfilter", {}).get("type") == "box"
+          and not any(k in cam for k in ("principal_point_offset_x", "principal_point_offset_y",
+                                         "shutter_open_time", "medium"))
+          and not any(k in film for k in ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
+                                          "sample_border")))
+    if not ok:
+        raise RuntimeError("the frozen launch supports a perspective camera (fov along x, no principal-point "
+                           "offset, shutter time or medium) with a box-filtered specfilm without crop or border; "
+                           f"the scene builder made {cam!r}: use --launch film, or extend frozen.py")
+
+
 class FrozenLaunch:
     """Render one frame's raw channels with a recorded (frozen) launch; see the module docstring.
 
@@ -250,7 +233,51 @@ class FrozenLaunch:
     curves : ``{channel: (wavelengths [nm], response)}``, the film's responses (``Phi``, ``E``).
     sampler_type : Mitsuba sampler plugin (the camera's).
     frozen : False runs the same function without ``drjit.freeze`` (a reference for tests).
+
+    :meth:`prepare` makes one for a scene the renderer loads (:class:`.launch.Launch`).
     """
+
+    kind = "frozen"
+    #: the camera's pose is an input of each launch (:meth:`launch`); Mitsuba's camera is never rendered
+    camera_pose_is_input = True
+    #: replays do not see a mesh moved by rewriting its vertices: moving meshes are instances
+    sees_vertex_rewrites = False
+
+    @staticmethod
+    def prepare(mi, scene, scene_dict: dict, motions: dict):
+        """Adapt the scene builder's dict (``scene_dict``, ``motions`` from :func:`.builder.build_dict`) of
+        ``scene`` to the frozen launch, in place, before it is loaded: moving meshes become instances
+        (:func:`instance_moving_meshes`), and the camera keeps its pose and sampler but gets a plain ``hdrfilm``
+        (its film is never rendered). -> ``(instanced, bind)``: ``{key: (M(0) S)^-1}`` of the meshes made
+        instances, and ``bind(mi_scene)``, the launch for the loaded scene.
+
+        Raises :class:`sensor.errors.InputError` for a scene the frozen launch cannot render
+        (:func:`frozen_obstacle`) and, from ``bind``, on a variant without a JIT (no ``drjit.freeze``)."""
+        from sensor.errors import InputError
+
+        from .builder import SAMPLER, SENSOR_KEY
+        why = frozen_obstacle(scene)
+        if why:
+            raise InputError(f"{why}: render it with --launch film (--launch auto chooses it for this scene)",
+                             path=scene.path, field="--launch")
+        instanced = instance_moving_meshes(mi, scene_dict, motions)
+        cam = scene_dict[SENSOR_KEY]
+        check_camera(cam)
+        film = cam["film"]
+        curves = {c: tuple(np.array([float(x) for x in film[c][k].split(",")]) for k in ("wavelengths", "values"))
+                  for c in ("Phi", "E")}
+        cam["film"] = {"type": "hdrfilm", "width": film["width"], "height": film["height"],
+                       "rfilter": {"type": "box"}}
+
+        def bind(mi_scene):
+            import drjit
+            if not drjit.is_jit_v(mi.Float):
+                raise InputError(f"the frozen launch needs an LLVM or CUDA variant of Mitsuba (drjit.freeze); "
+                                 f"this run uses '{mi.variant()}': use --launch film with it", field="--launch")
+            return FrozenLaunch(mi, drjit, mi_scene, scene.profile.height, scene.profile.width, cam["fov"],
+                                cam["near_clip"], cam["far_clip"], curves, SAMPLER)
+        return instanced, bind
+
 
     def __init__(self, mi, dr, mi_scene, height: int, width: int, fov_x_deg: float, near_clip: float,
                  far_clip: float, curves: dict, sampler_type: str, frozen: bool = True):
@@ -271,6 +298,10 @@ class FrozenLaunch:
         self.frozen = bool(frozen)
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
         self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
+
+    def max_samples(self) -> int:
+        """:data:`MAX_SAMPLES_PER_LAUNCH`: the most samples one launch takes (its memory is 8 bytes a sample)."""
+        return MAX_SAMPLES_PER_LAUNCH
 
     @property
     def n_recordings(self) -> int:
@@ -303,7 +334,7 @@ class FrozenLaunch:
         # recording serves every pose and seed. One copy to the device, where a Transform4f made opaque was 32
         # one-value memsets a launch (its matrix and inverse transpose). Made from a list, in memory of Dr.Jit's own:
         # made from a NumPy array, the buffer was at times another input layout to drjit.freeze, which then recorded
-        # the launch again (in 5 of 40 processes of a 13-launch run, against none in 120 from a list; 2026-11-26)
+        # the launch again (in 5 of 40 processes of a 13-launch run, against none in 120 from a list)
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
         if self.frozen and spp not in self._seen_spp:  # a new count is recorded: scenes with the spectral film
             import gc  # that are garbage not yet collected (e.g. a light meter's, in a reference cycle) would

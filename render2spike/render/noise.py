@@ -288,8 +288,8 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     ncfg = rcfg["noise"]
     exact = rnd.effective_spp
     n1 = exact(int(ncfg["pilot_spp"]))
-    # a pair of seeds per level: 4 levels, then the snapping's (2 SNAP_STEPS + 1 at most); the first 8 words
-    # are those of the 8-word state used before the snapping existed
+    # a pair of seeds per level: 4 levels, then the snapping's (2 SNAP_STEPS + 1 at most); the words of a
+    # SeedSequence's state do not depend on how many are drawn, so the levels' seeds do not depend on SNAP_STEPS
     seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(2 * (5 + 2 * SNAP_STEPS),
                                                                                 dtype=np.uint32)
     pil, levels, var_means = {}, [], []

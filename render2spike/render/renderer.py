@@ -8,10 +8,10 @@ for each time ``t_s``:
    positions and normals; in the frozen launch, their instance's transform) and the
    camera's pose from :mod:`.motion` (its ``to_world`` in the film launch; in the frozen launch an
    input of the launch only, Mitsuba's camera being never rendered there);
-2. renders the two-channel spectral film with exactly the asked samples per
-   pixel (seeds derived from the base seed and the frame time), in one launch
-   when the sampler takes that count exactly; optionally a second, independent
-   render whose difference gives the frame's per-pixel Monte Carlo variance;
+2. renders the two raw channels with exactly the asked samples per pixel (seeds derived
+   from the base seed and the frame time) through its launch (:mod:`.launch`: film or
+   frozen), in one launch when the sampler takes that count exactly; optionally a second,
+   independent render whose difference gives the frame's per-pixel Monte Carlo variance;
 3. converts raw channels to ``Phi`` [e-/(s m^2)] and ``E`` [lux] with
    :func:`.photometry.to_physical`'s factors (:func:`.photometry.physical_factors`: the camera equation,
    per-pixel cos^4), made once per renderer.
@@ -29,32 +29,16 @@ from sensor.units import mm_to_m, photoelectron_rate
 
 from . import backend
 from .builder import SAMPLER, SENSOR_KEY, build_dict, carries_normals, moving_meshes, to_transform
-from .frozen import (DEFAULT_LAUNCH, MAX_SAMPLES_PER_LAUNCH, check_launch, frozen_obstacle, instance_moving_meshes,
-                     resolve_launch)
+from .launch import DEFAULT_LAUNCH, LAUNCH_TYPES, check_launch, resolve_launch
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
                          warn_if_reference_shadowed)
 from .scene import Scene, spectrum_curve
 
 
-def _check_frozen_camera(cam: dict) -> None:
-    """The frozen launch makes the rays of a plain pinhole camera (:meth:`.frozen.FrozenLaunch.primary_rays`):
-    refuse a camera dict that asks for more, so that a change to the builder cannot make its frames drift."""
-    film = cam.get("film", {})
-    ok = (cam.get("type") == "perspective" and cam.get("fov_axis") == "x" and film.get("type") == "specfilm"
-          and film.get("rfilter", {}).get("type") == "box"
-          and not any(k in cam for k in ("principal_point_offset_x", "principal_point_offset_y",
-                                         "shutter_open_time", "medium"))
-          and not any(k in film for k in ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
-                                          "sample_border")))
-    if not ok:
-        raise RuntimeError("the frozen launch supports a perspective camera (fov along x, no principal-point "
-                           "offset, shutter time or medium) with a box-filtered specfilm without crop or border; "
-                           f"the scene builder made {cam!r}: use --launch film, or extend frozen.py")
-
-
 def _check_frozen_motion(moving: dict) -> None:
-    """The frozen launch's replays do not see a mesh moved by its vertices (:data:`.frozen.MESH_TYPES`):
-    refuse any, so that a change to the builder cannot make its frames silently wrong."""
+    """A launch whose replays do not see a mesh moved by its vertices (the frozen launch,
+    :data:`.frozen.MESH_TYPES`): refuse any, so that a change to the builder cannot make its frames silently
+    wrong."""
     vertex_moved = [k for k, v in moving.items() if v[0] == "vertices"]
     if vertex_moved:
         raise RuntimeError(f"the frozen launch cannot move {vertex_moved} by their vertices: make them instances "
@@ -147,14 +131,12 @@ class SceneRenderer:
         frames folder's render state): reused instead of measuring again, so frames of a
         resumed render share one emitter scale.
     launch : {"auto", "film", "frozen"}
-        How each render is launched (:data:`.frozen.LAUNCHES`): ``film`` calls the integrator's ``render``
+        How each render is launched (:mod:`.launch`): ``film`` calls the integrator's ``render``
         into Mitsuba's spectral film; ``frozen`` records the launch once with ``drjit.freeze`` and
         replays it (:mod:`.frozen`): the same channels in the same units, another Monte Carlo
-        estimate, without the per-launch tracing on the host; ``auto`` (the default) is ``frozen`` on
-        an LLVM or CUDA variant and ``film`` on a scalar one, or for a scene the frozen launch cannot
-        render (a moving mesh that emits light or changes shape: :func:`.frozen.frozen_obstacle`;
-        :func:`.frozen.resolve_launch`).
-        :attr:`launch_kind` is the launch taken.
+        estimate, without the per-launch tracing on the host; ``auto`` (the default) as
+        :func:`.launch.resolve_launch` chooses. :attr:`launch_kind` is the launch taken, :attr:`frame_launch`
+        the :class:`.launch.Launch` that renders.
     """
 
     def __init__(self, scene: Scene, variant: str | None = None, calibration: dict | None = None,
@@ -163,43 +145,25 @@ class SceneRenderer:
         self.scene = scene
         self.mi = mi = backend.mitsuba(variant)
         self.variant = mi.variant()
-        self.launch_kind = launch = resolve_launch(launch, self.variant, scene)
+        self.launch_kind = resolve_launch(launch, self.variant, scene)
+        launch_type = LAUNCH_TYPES[self.launch_kind]
         t0 = time.perf_counter()
         d, self.motions = build_dict(mi, scene)
-        instanced = {}  # {key: (M(0) S)^-1} of the meshes the frozen launch moves as instances
-        cam_dict = d[SENSOR_KEY]
-        if launch == "frozen":  # the camera keeps its pose and sampler; its film is never rendered (frozen.py)
-            why = frozen_obstacle(scene)
-            if why:
-                raise InputError(f"{why}: render it with --launch film (--launch auto chooses it for this scene)",
-                                 path=scene.path, field="--launch")
-            instanced = instance_moving_meshes(mi, d, self.motions)
-            _check_frozen_camera(cam_dict)
-            film = cam_dict["film"]
-            curves = {c: tuple(np.array([float(x) for x in film[c][k].split(",")]) for k in ("wavelengths", "values"))
-                      for c in ("Phi", "E")}
-            cam_dict["film"] = {"type": "hdrfilm", "width": film["width"], "height": film["height"],
-                                "rfilter": {"type": "box"}}
+        # {key: (M(0) S)^-1} of the meshes the launch moves as instances; bind: the launch for the loaded scene
+        instanced, bind = launch_type.prepare(mi, scene, d, self.motions)
         try:
             self.mi_scene = mi.load_dict(d, optimize=False)
         except Exception as exc:
             raise InputError(f"Mitsuba could not build the scene: {exc}", path=scene.path) from exc
         self.params = mi.traverse(self.mi_scene)
         self.sensor = self.mi_scene.sensors()[0]
-        self._integrator = self.mi_scene.integrator()
         import drjit
         self._dr = drjit
         cam_motion, cam_shape = self.motions[SENSOR_KEY]
-        self._cam_m = cam_motion.matrix(0.0) @ cam_shape  # the camera's pose at the time set (frozen launch)
-        self._frozen = None
-        if launch == "frozen":
-            if not drjit.is_jit_v(mi.Float):
-                raise InputError(f"the frozen launch needs an LLVM or CUDA variant of Mitsuba (drjit.freeze); "
-                                 f"this run uses '{self.variant}': use --launch film with it", field="--launch")
-            from .frozen import FrozenLaunch
-            self._frozen = FrozenLaunch(mi, drjit, self.mi_scene, scene.profile.height, scene.profile.width,
-                                        cam_dict["fov"], cam_dict["near_clip"], cam_dict["far_clip"], curves,
-                                        SAMPLER)
+        self._cam_m = cam_motion.matrix(0.0) @ cam_shape  # the camera's pose at the time set (an input of a launch)
+        self.frame_launch = bind(self.mi_scene)
+        # the frozen launch itself (None for the film launch): tests and benchmarks drive its recording directly
+        self._frozen = self.frame_launch if self.launch_kind == "frozen" else None
         self._moving = {}
         self._t_set = None  # the time the moving objects are at (set_time)
         self.n_launches = 0  # render launches so far (benchmarks count the verification launches with it)
@@ -210,7 +174,7 @@ class SceneRenderer:
             if motion.is_static:
                 continue
             pkey = f"{key}.to_world"
-            if key in instanced and pkey in self.params:  # to_world = relative_motion(t) (frozen.py)
+            if key in instanced and pkey in self.params:  # to_world = frozen.relative_motion(t)
                 self._moving[key] = ("instance", pkey, motion, shape_m, instanced[key])
             elif pkey in self.params:
                 self._moving[key] = ("to_world", pkey, motion, shape_m, None)
@@ -221,12 +185,13 @@ class SceneRenderer:
             else:
                 raise InputError(f"object '{key}' cannot be moved: Mitsuba exposes neither to_world nor "
                                  "vertex_positions for it", path=scene.path, field=f"objects.{key}.motion")
-        if launch == "frozen":
+        if not launch_type.sees_vertex_rewrites:
             _check_frozen_motion(self._moving)
-            if SENSOR_KEY in self._moving:  # the frozen launch traces its own primary rays from the camera's pose
-                # (self._cam_m, an input of its recording); Mitsuba's camera is never rendered, and its to_world
-                # stays as loaded: a camera-only motion updates nothing in Mitsuba's scene
-                self._moving[SENSOR_KEY] = ("camera", None) + self._moving[SENSOR_KEY][2:]
+        if launch_type.camera_pose_is_input and SENSOR_KEY in self._moving:
+            # the launch traces its own primary rays from the camera's pose (self._cam_m, an input of each
+            # launch); Mitsuba's camera is never rendered, and its to_world stays as loaded: a camera-only
+            # motion updates nothing in Mitsuba's scene
+            self._moving[SENSOR_KEY] = ("camera", None) + self._moving[SENSOR_KEY][2:]
         # the scene parameters set_time writes, and only those: Mitsuba's update then walks just these. Reading a
         # parameter makes Mitsuba check it at the next update (the loaded normals read above, also where they are
         # not carried): an update first settles those reads, so that no key dropped here is looked for later
@@ -262,9 +227,9 @@ class SceneRenderer:
         would make Mitsuba rebuild its ray-tracing structure and wait for the kernels in flight
         (the frame and its verification launch, or the launches of an spp taken in parts, share a time).
         With the frozen launch the camera's pose is an input of the launch only (Mitsuba's camera is never
-        rendered there): a scene in which only the camera moves updates nothing in Mitsuba (on the 2-core
-        CPU ``room_pan``'s scene update went from 0.71-0.79 to 0.15 ms a frame at load 0.5-1.1;
-        ``benchmarks/render_launch.py``, ``docs/performance.md``, seventh round).
+        rendered there): a scene in which only the camera moves updates nothing in Mitsuba (on a 2-core
+        CPU ``room_pan``'s scene update takes 0.15 ms a frame instead of about 0.75 ms;
+        ``benchmarks/render_launch.py``).
         """
         if not self._moving or t_s == self._t_set:
             return
@@ -304,37 +269,20 @@ class SceneRenderer:
         render launched before waiting for the first (a frame and its verification launch) does not
         overlap with it, though: the second launch waits for the first kernel before it traces (the two
         share the sensor's film), so launching both first costs nothing and gains nothing (pairs timed both
-        ways: 1.00x, 2026-11-26).
+        ways: 1.00x).
         """
         self.set_time(t_s)
         self.n_launches += 1
         return self._render_call(int(seed), int(spp))
 
     def _render_call(self, seed: int, spp: int):
-        """One render of the loaded scene: the scene integrator's ``render``, called the way ``mi.render`` calls it.
-
-        ``mi.render`` wraps that call in a differentiable operation (``dr.custom``) so that gradients can
-        flow through it; nothing here is differentiated, and the wrapper's tracing cost (about 0.1 ms a
-        launch, 2-3 % of a 32 x 48 frame at 16 spp) is a fixed cost of every frame. The film is bitwise the
-        one ``mi.render`` returns for the same seed and spp (tested).
-
-        With ``launch="frozen"`` it is the recorded launch of :mod:`.frozen` instead (same channels and
-        units, another Monte Carlo estimate).
-        """
-        if self._frozen is not None:
-            return self._frozen.launch(seed, spp, self._cam_m)
-        with self._dr.suspend_grad():
-            return self._integrator.render(self.mi_scene, self.sensor, seed=seed, spp=spp, develop=True,
-                                           evaluate=False)
+        """One render of the loaded scene by its launch (:meth:`.launch.Launch.launch`), at the camera's pose."""
+        return self.frame_launch.launch(seed, spp, self._cam_m)
 
     def channels(self, img) -> tuple[np.ndarray, np.ndarray]:
         """(Phi_raw, E_raw), float64 (H, W), of a render from :meth:`launch` (waits for its kernel)."""
-        if self._frozen is not None:
-            ch = self._frozen.channels(img)
-            return ch["Phi"], ch["E"]
-        arr = np.asarray(img, dtype=np.float64)
-        names = self._channel_names()
-        return arr[..., names.index("Phi")], arr[..., names.index("E")]
+        ch = self.frame_launch.channels(img)
+        return ch["Phi"], ch["E"]
 
     def render_raw(self, t_s: float, seed: int, spp: int) -> tuple[np.ndarray, np.ndarray]:
         """Raw film channels (Phi_raw, E_raw), float64 (H, W), at ``t_s`` with ``spp`` samples per pixel."""
@@ -358,12 +306,6 @@ class SceneRenderer:
             kept, self._kept = self._kept, None
             self._reusable = kept
 
-    def _channel_names(self):
-        if not hasattr(self, "_names"):
-            bmp = self.sensor.film().bitmap()
-            self._names = [bmp.struct_()[i].name for i in range(bmp.channel_count())]
-        return self._names
-
     def effective_spp(self, spp: int) -> int:
         """The sample count the (stratified) sampler really takes for a request of ``spp`` (rounds up)."""
         cache = self.__dict__.setdefault("_spp_cache", {})
@@ -377,19 +319,20 @@ class SceneRenderer:
         """Sample counts of the launches that together take exactly ``spp`` samples per pixel.
 
         One launch when the sampler takes ``spp`` exactly (always so for the noise budget's
-        choice); otherwise the largest exact counts first (e.g. 17 -> [16, 1]). With the frozen
-        launch, no launch takes more than :data:`.frozen.MAX_SAMPLES_PER_LAUNCH` samples where one
-        sample per pixel fits (its memory is 8 bytes a sample): a larger count is taken in ``k`` parts
-        of about ``spp / k`` each, the fewest that fit, split the same way (e.g. 1024 spp at 250 x 400
-        -> [506, 506, 12] with the stratified sampler; equal parts share one recording).
+        choice); otherwise the largest exact counts first (e.g. 17 -> [16, 1]). Where the launch takes at
+        most so many samples (:meth:`.launch.Launch.max_samples`; the frozen launch's memory is 8 bytes a
+        sample, :data:`.frozen.MAX_SAMPLES_PER_LAUNCH`) and one sample per pixel fits, a larger count is
+        taken in ``k`` parts of about ``spp / k`` each, the fewest that fit, split the same way (e.g. 1024 spp
+        at 250 x 400 -> [506, 506, 12] with the stratified sampler; equal parts share one recording).
         """
         from .noise import exact_below
         cache = self.__dict__.setdefault("_launch_cache", {})
         spp = max(1, int(spp))
         if spp not in cache:
             part = spp
-            if self.launch_kind == "frozen":
-                cap = max(1, MAX_SAMPLES_PER_LAUNCH // (self.scene.profile.height * self.scene.profile.width))
+            most = self.frame_launch.max_samples()
+            if most is not None:
+                cap = max(1, most // (self.scene.profile.height * self.scene.profile.width))
                 part = -(-spp // -(-spp // cap))  # ceil(spp / k), k = ceil(spp / cap) parts
             out, left = [], spp
             while left > 0:

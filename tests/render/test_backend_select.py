@@ -74,7 +74,7 @@ def test_cuda_device_present_needs_a_device_node(monkeypatch):
 
 
 def test_scene_hash_separates_cpu_and_gpu_frames(write_scene):
-    from render2spike.render.job import settings_of
+    from render2spike.render.launch import settings_of
     from render2spike.render.scene import load_scene
     sc = load_scene(write_scene())
     assert variant_family(GPU_VARIANT) == "cuda" and variant_family(PREFERRED_VARIANT) == "llvm"

@@ -216,7 +216,8 @@ def test_a_scaled_turned_moving_mesh_file_renders_as_in_the_film_launch(tmp_path
 
 
 def test_a_mesh_whose_motion_changes_its_shape_keeps_the_film_launch(write_scene):
-    from render2spike.render.frozen import frozen_obstacle, resolve_launch
+    from render2spike.render.frozen import frozen_obstacle
+    from render2spike.render.launch import resolve_launch
     from render2spike.render.scene import load_scene
     grow = {**MOVING[1], "motion": {"keyframes": [{"time_s": 0.0, "scale": [1.0, 1.0, 1.0]},
                                                   {"time_s": 0.01, "scale": [2.0, 1.0, 1.0]}]}}
@@ -243,7 +244,8 @@ def test_a_mesh_whose_motion_changes_its_shape_keeps_the_film_launch(write_scene
 
 
 def test_a_moving_mesh_that_emits_light_keeps_the_film_launch(write_scene):
-    from render2spike.render.frozen import frozen_obstacle, resolve_launch
+    from render2spike.render.frozen import frozen_obstacle
+    from render2spike.render.launch import resolve_launch
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
@@ -253,7 +255,7 @@ def test_a_moving_mesh_that_emits_light_keeps_the_film_launch(write_scene):
     assert "emits light" in frozen_obstacle(sc)
     assert resolve_launch("auto", "llvm_ad_spectral", sc) == "film"
     # nor does auto keep the frozen launch of a folder for it (one made by an older version that allowed it)
-    from render2spike.render.job import launch_taken, settings_of
+    from render2spike.render.launch import launch_taken, settings_of
     old = sc.content_hash(settings_of(sc, "llvm_ad_spectral", "frozen"))
     assert launch_taken(sc, "llvm_ad_spectral", "auto", old, "frozen") == (
         "film", sc.content_hash(settings_of(sc, "llvm_ad_spectral", "film")))
@@ -316,7 +318,7 @@ def test_render_job_records_the_launch_and_resumes_only_with_it(tmp_path, write_
     assert not (tmp_path / "g").exists()
     # the estimator's version is in the hash: a changed estimator does not resume an older folder
     import render2spike.render.frozen as frozen_mod
-    from render2spike.render.job import settings_of
+    from render2spike.render.launch import settings_of
     from render2spike.render.backend import mitsuba
     v = mitsuba().variant()
     a = settings_of(sc, v, "frozen")
@@ -381,7 +383,7 @@ def test_cli_launch_option_reaches_the_frames_and_the_run_summary(tmp_path, writ
     from render2spike.cli import main
     from render2spike.pipeline import run_pipeline
     from render2spike.render.backend import mitsuba
-    from render2spike.render.frozen import resolve_launch
+    from render2spike.render.launch import resolve_launch
     from sensor.errors import InputError
     path = write_scene()
     auto = resolve_launch("auto", mitsuba().variant())  # frozen on the LLVM and CUDA variants the tests run on
@@ -413,8 +415,8 @@ def test_cli_launch_option_reaches_the_frames_and_the_run_summary(tmp_path, writ
 
 
 def test_auto_takes_the_frozen_launch_on_jit_variants_and_a_folder_its_own_launch(tmp_path, write_scene):
-    from render2spike.render.frozen import resolve_launch
     from render2spike.render.job import render_scene
+    from render2spike.render.launch import resolve_launch
     from render2spike.render.renderer import SceneRenderer
     from sensor.errors import InputError
     for v in ("llvm_ad_spectral", "cuda_ad_spectral", "llvm_ad_rgb"):
@@ -444,24 +446,24 @@ def test_auto_takes_the_frozen_launch_on_jit_variants_and_a_folder_its_own_launc
 
 
 def test_a_frozen_launch_too_big_for_its_memory_cap_is_split_into_seeded_parts(write_scene, monkeypatch):
-    import render2spike.render.renderer as renderer_mod
+    import render2spike.render.frozen as frozen_mod
     from render2spike.render.renderer import SceneRenderer
     sc = _scene(write_scene, pan=False)
     px = sc.profile.height * sc.profile.width
-    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 10 * px)  # at most 10 samples per pixel a launch
+    monkeypatch.setattr(frozen_mod, "MAX_SAMPLES_PER_LAUNCH", 10 * px)  # at most 10 samples per pixel a launch
     r = SceneRenderer(sc, launch="frozen")
     assert r.launch_counts(36) == [9, 9, 9, 9]  # ceil(36 / 10) = 4 parts of 9 (an exact count)
     for spp in (4, 10, 17, 64, 100):
         counts = r.launch_counts(spp)
         assert sum(counts) == spp and max(counts) <= 10 and len(counts) >= -(-spp // 10), (spp, counts)
-    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 30 * px)
+    monkeypatch.setattr(frozen_mod, "MAX_SAMPLES_PER_LAUNCH", 30 * px)
     r.__dict__.pop("_launch_cache")
     assert r.launch_counts(48) == [24, 24]  # equal parts (one recording), not [30, 16, 2]
-    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 10 * px)
+    monkeypatch.setattr(frozen_mod, "MAX_SAMPLES_PER_LAUNCH", 10 * px)
     r.__dict__.pop("_launch_cache")
     split = r.render_frame(0.0, 11, 36, variance=True)
     assert len(set(split["seeds"])) == 4  # each part its own seed
-    monkeypatch.setattr(renderer_mod, "MAX_SAMPLES_PER_LAUNCH", 1 << 26)
+    monkeypatch.setattr(frozen_mod, "MAX_SAMPLES_PER_LAUNCH", 1 << 26)
     whole_r = SceneRenderer(sc, launch="frozen", calibration=r.calibration)
     assert whole_r.launch_counts(36) == [36]
     whole = whole_r.render_frame(0.0, 12, 36, variance=True)

@@ -2,14 +2,14 @@
 
 import json
 
-from render2spike.render import job
+from render2spike.render import folder
 
 
 def test_lines_are_flushed_at_once_and_fsynced_in_batches(tmp_path, monkeypatch):
     synced = []
-    monkeypatch.setattr(job.os, "fsync", lambda fd: synced.append(fd))
-    path = tmp_path / job.JOURNAL_NAME
-    j = job.Journal(path, fsync_every_s=3600.0)
+    monkeypatch.setattr(folder.os, "fsync", lambda fd: synced.append(fd))
+    path = tmp_path / folder.JOURNAL_NAME
+    j = folder.Journal(path, fsync_every_s=3600.0)
     for i in range(5):
         j.append({"tick": i, "file": f"f{i}.exr"})
         # readable by another process (resume) before any fsync: the line is in the OS, not in our buffer
@@ -23,10 +23,10 @@ def test_lines_are_flushed_at_once_and_fsynced_in_batches(tmp_path, monkeypatch)
 
 def test_fsync_once_the_interval_has_passed(tmp_path, monkeypatch):
     synced = []
-    monkeypatch.setattr(job.os, "fsync", lambda fd: synced.append(fd))
+    monkeypatch.setattr(folder.os, "fsync", lambda fd: synced.append(fd))
     clock = {"t": 100.0}
-    monkeypatch.setattr(job.time, "monotonic", lambda: clock["t"])
-    with job.Journal(tmp_path / "j.jsonl", fsync_every_s=1.0) as j:
+    monkeypatch.setattr(folder.time, "monotonic", lambda: clock["t"])
+    with folder.Journal(tmp_path / "j.jsonl", fsync_every_s=1.0) as j:
         j.append({"tick": 0})
         clock["t"] += 0.5
         j.append({"tick": 1})
@@ -43,9 +43,9 @@ def test_fsync_once_the_interval_has_passed(tmp_path, monkeypatch):
 
 def test_a_journal_closed_on_an_error_is_fsynced(tmp_path, monkeypatch):
     synced = []
-    monkeypatch.setattr(job.os, "fsync", lambda fd: synced.append(fd))
+    monkeypatch.setattr(folder.os, "fsync", lambda fd: synced.append(fd))
     try:
-        with job.Journal(tmp_path / "j.jsonl", fsync_every_s=3600.0) as j:
+        with folder.Journal(tmp_path / "j.jsonl", fsync_every_s=3600.0) as j:
             j.append({"tick": 0})
             raise KeyboardInterrupt
     except KeyboardInterrupt:

@@ -140,97 +140,66 @@ def test_film_and_frozen_launches_shade_a_moving_mesh_alike(tmp_path, write_scen
     assert_image_means_agree(*film_and_frozen_frames(sc, "thing"))
 
 
-def test_a_film_folder_of_a_moving_mesh_from_before_the_fix_is_not_resumed(tmp_path, write_scene):
-    # The fix changes the film launch's frames of a scene with a moving mesh, so their hash carries it
-    # ("mesh_normals"): a folder rendered before (no such entry, the older hash) is refused, with a hint, by
-    # either launch choice; the hashes of scenes without a moving mesh are unchanged.
+def test_the_film_launch_records_how_it_moves_mesh_normals(tmp_path, write_scene):
+    # The film launch's frames of a scene with a moving mesh that carries its normals depend on how they are
+    # moved, so their hash carries it ("mesh_normals"); the hashes of scenes without such a mesh do not, and
+    # every film-launch folder records it
     import json
 
     from render2spike.render.backend import mitsuba
-    from render2spike.render.job import MANIFEST_NAME, STATE_NAME, render_scene, settings_of
+    from render2spike.render.job import render_scene
+    from render2spike.render.launch import settings_of
     from render2spike.render.scene import load_scene
-    from sensor.errors import InputError
+    from sensor.io.frames import MANIFEST_NAME
     v = mitsuba().variant()
     sc = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", SLOW), "reference": REF}),
                     ["render.spp=4"])
     new = settings_of(sc, v, "film")
     assert new["mesh_normals"] == "carried"
-    assert "mesh_normals" not in settings_of(sc, v, "frozen")  # the frozen launch's frames did not change
+    assert "mesh_normals" not in settings_of(sc, v, "frozen")  # the frozen launch moves meshes as instances
     still = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", None), "reference": REF},
                                    name="still.yaml"))
     assert "mesh_normals" not in settings_of(still, v, "film")
-    plain, _ = _moving_and_still(tmp_path, "plain_mesh_stretched")  # a moving mesh without normals: frames as before
+    plain, _ = _moving_and_still(tmp_path, "plain_mesh_stretched")  # a moving mesh without normals
     plain = load_scene(write_scene({"objects": [BACK, plain], "reference": REF}, name="plain.yaml"))
     assert "mesh_normals" not in settings_of(plain, v, "film")
-    out = tmp_path / "f"
     quiet = {"progress": False, "log": lambda *a: None}
-    render_scene(sc, out, launch="film", **quiet)
-    manifest = json.loads((out / MANIFEST_NAME).read_text())
-    assert manifest["mesh_normals"] == "carried"
-    # make it a folder of the older film launch: its hash without the entry, and no entry in its files
-    old_hash = sc.content_hash({k: x for k, x in new.items() if k != "mesh_normals"})
-    assert old_hash != manifest["scene_hash"]
-    for name in (MANIFEST_NAME, STATE_NAME):
-        d = json.loads((out / name).read_text())
-        d.pop("mesh_normals")
-        d["scene_hash"] = old_hash
-        (out / name).write_text(json.dumps(d))
-    for launch in ("film", "auto", "frozen"):
-        with pytest.raises(InputError, match="film launch before it carried its moving meshes' normals") as err:
-            render_scene(sc, out, launch=launch, **quiet)
-        assert "--launch film to resume" not in str(err.value)  # (it would not resume it)
-    assert render_scene(sc, out, launch="film", overwrite=True, **quiet).n_rendered > 0
-    # every film-launch folder records it, a static scene's too
-    render_scene(still, tmp_path / "s", launch="film", **quiet)
+    render_scene(sc, tmp_path / "f", launch="film", **quiet)
+    manifest = json.loads((tmp_path / "f" / MANIFEST_NAME).read_text())
+    assert manifest["mesh_normals"] == "carried" and manifest["scene_hash"] == sc.content_hash(new)
+    render_scene(still, tmp_path / "s", launch="film", **quiet)  # a static scene's folder too
     m = json.loads((tmp_path / "s" / MANIFEST_NAME).read_text())
     assert m["mesh_normals"] == "carried" and m["launch"] == "film"
-    # a folder of the older film launch whose scene changed since (the cube made to move) is not blamed on it
-    for name in (MANIFEST_NAME, STATE_NAME):
-        d = json.loads((tmp_path / "s" / name).read_text())
-        d.pop("mesh_normals")
-        (tmp_path / "s" / name).write_text(json.dumps(d))
-    with pytest.raises(InputError, match="different scene or settings") as err:
-        render_scene(sc, tmp_path / "s", launch="film", **quiet)
-    assert "normals" not in str(err.value)
 
 
 def test_a_refusal_names_every_cause_that_explains_it_in_one_command(tmp_path, write_scene):
     # _refusal_hint: a folder of the film launch on a GPU variant, refused on the CPU with --launch frozen, needs
     # both switches: one sentence names both; each alone is named when it alone explains the folder's hash
-    from render2spike.render.job import _refusal_hint, settings_of
+    from render2spike.render.launch import refusal_hint, settings_of
     from render2spike.render.scene import load_scene
     sc = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", SLOW), "reference": REF}))
     gpu, cpu = "cuda_ad_spectral", "llvm_ad_spectral"
     both = sc.content_hash(settings_of(sc, gpu, "film"))
-    h = _refusal_hint(sc, cpu, "frozen", "frozen", both, gpu, "film", {}, {})
+    h = refusal_hint(sc, cpu, "frozen", "frozen", both, gpu, "film", {}, {})
     assert f"pass --variant {gpu} --launch film to resume it" in h and h.count("resume it") == 1
-    h = _refusal_hint(sc, cpu, "film", "film", both, gpu, "film", {"mesh_normals": "carried"}, {})
+    h = refusal_hint(sc, cpu, "film", "film", both, gpu, "film", {"mesh_normals": "carried"}, {})
     assert f"pass --variant {gpu} to resume it" in h and "--launch" not in h
     launch_only = sc.content_hash(settings_of(sc, cpu, "film"))
-    h = _refusal_hint(sc, cpu, "frozen", "frozen", launch_only, cpu, "film", {"mesh_normals": "carried"}, {})
+    h = refusal_hint(sc, cpu, "frozen", "frozen", launch_only, cpu, "film", {"mesh_normals": "carried"}, {})
     assert "pass --launch film to resume it" in h and "--variant" not in h
     # a hash that neither explains (another scene): no advice to switch
-    assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, cpu, "film", {}, {})
-    assert "pass" not in _refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, gpu, "film", {}, {})
-    # a run's summary without a hash (render2spike run): no hash to match, so no advice and no normals sentence
-    still = load_scene(write_scene({"objects": _objects(tmp_path, "negative_scale_cube", None), "reference": REF},
-                                   name="still.yaml"))  # (no carried normals: their hash check gives None)
-    for scene in (sc, still):
-        for missing in (None, ""):
-            assert _refusal_hint(scene, cpu, "film", "film", missing, 42, "film", {}, {}) == ""
-    # a film folder from before the normals fix, made on another variant: switching the variant would not resume
-    # it, so no command is suggested; the sentence names the variant it was made with
-    old = settings_of(sc, gpu, "film")
-    old.pop("mesh_normals")
-    h = _refusal_hint(sc, cpu, "film", "film", sc.content_hash(old), gpu, "film", {}, {})
-    assert "resume it" not in h and f"made with Mitsuba '{gpu}' by the film launch before it carried" in h
+    assert "pass" not in refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, cpu, "film", {}, {})
+    assert "pass" not in refusal_hint(sc, cpu, "frozen", "frozen", "0" * 16, gpu, "film", {}, {})
+    # a run's summary without a hash (render2spike run): no hash to match, so no advice
+    for missing in (None, ""):
+        assert refusal_hint(sc, cpu, "film", "film", missing, 42, "film", {}, {}) == ""
     # a manifest's variant that is no variant name (a damaged file): no exception, no advice to pass it
     for bad in (42, ["x"], "foo", None):
-        assert "--variant" not in _refusal_hint(sc, cpu, "film", "film", both, bad, "film", {}, {})
+        assert "--variant" not in refusal_hint(sc, cpu, "film", "film", both, bad, "film", {}, {})
     # a CUDA variant is advised for a machine with a GPU; one the CLI does not offer through the environment
-    assert "on a machine with a CUDA GPU" in _refusal_hint(sc, cpu, "film", "film", both, gpu, "film", {}, {})
+    assert "on a machine with a CUDA GPU" in refusal_hint(sc, cpu, "film", "film", both, gpu, "film", {}, {})
     pol = "llvm_ad_spectral_polarized"
-    h = _refusal_hint(sc, cpu, "film", "film", sc.content_hash(settings_of(sc, pol, "film")), pol, "film", {}, {})
+    h = refusal_hint(sc, cpu, "film", "film", sc.content_hash(settings_of(sc, pol, "film")), pol, "film", {}, {})
     assert f"RENDER2SPIKE_VARIANT={pol}" in h
 
 
@@ -326,7 +295,7 @@ def test_which_mesh_files_bring_their_own_normals(tmp_path):
 def test_a_moving_mesh_flat_at_t0_is_refused(tmp_path, write_scene):
     # Both launches place a moving mesh in its t = 0 pose and move it from there: a scale keyframed through zero
     # exactly at t = 0 is refused with the field to change (it raised numpy's LinAlgError before)
-    from render2spike.render.frozen import resolve_launch
+    from render2spike.render.launch import resolve_launch
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
@@ -445,7 +414,7 @@ def test_a_moving_mesh_flat_only_by_its_size_or_scale_is_refused_naming_it(write
 
 def test_the_hash_of_a_scene_with_a_refused_obj_names_its_field(tmp_path, write_scene):
     # (settings_of reads the mesh file through builder.carries_normals: its refusal names the object's field too)
-    from render2spike.render.job import settings_of
+    from render2spike.render.launch import settings_of
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
     (tmp_path / "bad.obj").write_text("v 0 0 0\nv 0.01 0 0\nv 0 0.01 0\nvn 0 0 1\nf 1 2 3\n")

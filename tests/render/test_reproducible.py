@@ -173,7 +173,8 @@ def test_two_runs_give_identical_frames_and_spikes(two_runs):
 def test_killed_and_resumed_render_is_byte_identical(two_runs, tmp_path, monkeypatch):
     from render2spike.pipeline import simulate_frames
     from render2spike.render import renderer as rmod
-    from render2spike.render.job import load_state, render_scene
+    from render2spike.render.folder import load_state
+    from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.io.spikefile import read_spikes
 

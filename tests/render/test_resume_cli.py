@@ -14,7 +14,8 @@ from tests.render.conftest import needs_mitsuba
 @needs_mitsuba
 def test_resume_after_interrupt(tmp_path, write_scene, monkeypatch):
     from render2spike.render import renderer as rmod
-    from render2spike.render.job import load_state, render_scene
+    from render2spike.render.folder import load_state
+    from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
 

@@ -103,7 +103,8 @@ def test_render_stops_on_a_write_error_and_resumes_exactly(tmp_path, monkeypatch
     """A write failing mid-render: render_scene raises it; the journal lists only complete frames; a rerun
     renders only the rest and gives the frames of an uninterrupted render."""
     from render2spike.render import writer as wmod
-    from render2spike.render.job import load_state, render_scene
+    from render2spike.render.folder import load_state
+    from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.io.frames import write_frame
     p = _scene(tmp_path)
@@ -168,7 +169,8 @@ def _wait_journal(proc, out, lines=3, timeout=120):
 def test_killed_render_leaves_complete_journalled_frames_and_resumes(tmp_path, sig):
     """SIGKILL or SIGTERM with frames in the writer's queue: each journal line names a complete frame file,
     SIGTERM also leaves no temp file and exits 143, and the rerun gives the uninterrupted render's frames."""
-    from render2spike.render.job import load_state, render_scene
+    from render2spike.render.folder import load_state
+    from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.io.frames import read_frame
     p = _scene(tmp_path, duration_s=0.1)  # 21 frames
