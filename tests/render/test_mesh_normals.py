@@ -1,9 +1,9 @@
 """A moving mesh keeps the shading normals it was loaded with, in both launches.
 
 The film launch moves a mesh by rewriting its vertices, and Mitsuba recomputes a rewritten mesh's vertex normals
-from its triangles unless they are set too. Before the renderer set them (``renderer.carried_normals``), a mesh with
-a negative scale rendered inside out (its faces keep their winding, which the reflection turns inwards) and a mesh
-file lost its authored normals. Mitsuba's load, the frozen launch's instances and now the film launch all carry
+from its triangles unless they are set too; the renderer sets them (``renderer.carried_normals``). Without that, a
+mesh with a negative scale renders inside out (its faces keep their winding, which the reflection turns inwards) and
+a mesh file loses its authored normals. Mitsuba's load, the frozen launch's instances and the film launch all carry
 normals by the inverse transpose of the pose.
 """
 
