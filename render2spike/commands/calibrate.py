@@ -68,7 +68,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="PROFILE", help="output profile (.npz)")
     p.add_argument("--base", default="vidar-default", metavar="NAME|PATH",
                    help="profile supplying threshold, refractory time, pitch, fill factor, QE (default: vidar-default)")
-    p.add_argument("--name", default=None, help="name stored in the profile (default: calibrated-<base>)")
+    p.add_argument("--name", default=None, help="name stored in the profile (default: calibrated-<base>; with --from-rsir: rsir-<maps stem>)")
     p.add_argument("--hot-threshold", type=float, default=DEFAULT_HOT_THRESHOLD, metavar="SPIKES",
                    help=f"theta_HT in spikes per interval above the median dark rate (default {DEFAULT_HOT_THRESHOLD})")
     p.add_argument("--height", type=int, default=None, help=".dat frame height (default: the base profile's)")

@@ -196,8 +196,8 @@ def import_rsir(maps: dict, base: SensorProfile, *, plus_one: str = "dead-time",
     if plus_one == "dead-time":
         refr = np.full(shape, base.interval_s)
     else:
-        refr = np.broadcast_to(base.refractory_s.astype(np.float64), shape).copy() if base.shape == shape else \
-            np.full(shape, float(np.median(base.refractory_s)))
+        refr = base.refractory_s.astype(np.float64) if base.shape == shape else \
+            np.full(shape, float(np.median(base.refractory_s)))  # the base's blind time, per pixel when it fits
     f = _fraction(refr, base.interval_s)
     q_model = (1.0 - f + d_light) * (REFERENCE_LUX + nd)  # mean ISI f + q_model / (lux + Nd) = 1 + D_light at 335 lux
     theta = float(s * np.median(q_model))
