@@ -415,6 +415,7 @@ def test_fast_agrees_with_reference_lag1_and_isi(k, lam, f, mu):
     assert stats.ks_2samp(nth_isis(fs, 4), nth_isis(rs, 4)).pvalue > 1e-4
 
 
+@pytest.mark.slow
 def test_negative_hot_current_is_clipped_like_the_reference():
     H, W, T = 10, 10, 3000
     prof = crossing_profile(H, W, 100.0, refractory_s=0.2 * sensor.INTERVAL_S, dark_rate=0.002)
