@@ -1,12 +1,24 @@
 """Shared test configuration.
 
 * ``--runslow`` (or ``-m slow``) runs the slow tests: tighter statistical runs,
-  bigger renders, longer training. The default run skips them.
+  bigger renders, longer training, kill-and-resume renders in child processes,
+  reference-simulator statistics. The default run skips them; it keeps a fast
+  test of each capability.
+* ``cli``: runs ``render2spike ARGV`` in this process and returns its exit code,
+  stdout and stderr. Tests of signals, kills, start-up or process-wide state
+  (BLAS threads, Mitsuba variants) run real child processes instead.
+* ``rendered_run``: one tiny ``render2spike run`` made once per session, for the
+  tests that need some rendered frames (skipped where Mitsuba is missing).
 * Every stochastic test uses a fixed seed; tolerances come from the statistics
   (binomial / Poisson standard errors at a stated number of sigmas).
 """
 
+import contextlib
+import gc
+import io
 import os
+from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -40,3 +52,52 @@ def slow_scale(request):
 def _no_display(monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+class CliResult(NamedTuple):
+    """What a command gave: its exit code and its output (the fields of ``subprocess.CompletedProcess``)."""
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_cli(argv) -> CliResult:
+    """``render2spike ARGV`` in this process, its output captured: argparse's exits (``--help``, a bad
+    option) give their exit code like the command line's."""
+    from render2spike.cli import main
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main([str(a) for a in argv])
+        except SystemExit as exc:
+            rc = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    return CliResult(rc, out.getvalue(), err.getvalue())
+
+
+@pytest.fixture
+def cli():
+    """cli(*argv) -> CliResult(returncode, stdout, stderr) of ``render2spike ARGV``, run in this process."""
+    return lambda *argv: run_cli(argv)
+
+
+class RenderedRun(NamedTuple):
+    """A finished ``render2spike run``: its folder, its frames folder and the arguments that made it."""
+    out: Path
+    frames: Path
+    argv: tuple
+
+
+#: the session's run: the bundled Lambertian plane, 10 ms (200 intervals, 3 frames) at 8 spp, spike seed 3
+RENDERED_RUN_OPTIONS = ("--duration", "0.01", "--spp", "8", "--quiet", "--seed", "3")
+
+
+@pytest.fixture(scope="session")
+def rendered_run(tmp_path_factory) -> RenderedRun:
+    """One tiny run rendered and simulated once per session (in this process); tests read it, never change it."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 not installed")
+    out = tmp_path_factory.mktemp("rendered_run") / "run"
+    argv = ("run", "lambertian_plane", "--out", str(out), *RENDERED_RUN_OPTIONS)
+    res = run_cli(argv)
+    assert res.returncode == 0, res.stderr
+    gc.collect()  # the renderer goes before any test records a frozen launch
+    return RenderedRun(out, out / "frames", argv)

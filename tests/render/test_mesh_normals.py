@@ -85,8 +85,9 @@ def _moving_and_still(tmp_path, case):
     return moving, lambda t: {**obj, "scale": (s0 + (s1 - s0) * t / 0.01).tolist()}
 
 
-@pytest.mark.parametrize("case", ["negative_scale_cube", "authored_normals", "cube_scaled_through_zero",
-                                  "plain_mesh_stretched"])
+@pytest.mark.parametrize("case", ["negative_scale_cube", pytest.param("authored_normals", marks=pytest.mark.slow),
+                                  "cube_scaled_through_zero",
+                                  pytest.param("plain_mesh_stretched", marks=pytest.mark.slow)])
 def test_a_moving_mesh_renders_as_it_stands_in_the_film_launch(tmp_path, write_scene, case):
     # At each time a moving mesh renders as the same mesh standing still in its pose: with the same seeds the two
     # frames are the same estimate, up to the float32 round-off of the rewritten vertices (a sample's path
@@ -130,7 +131,7 @@ def test_the_film_launch_carries_authored_normals_by_the_inverse_transpose(tmp_p
         np.testing.assert_allclose(n, np.broadcast_to(want, n.shape), atol=1e-5)  # float32 normals
 
 
-@pytest.mark.parametrize("case", ["negative_scale_cube", "authored_normals"])
+@pytest.mark.parametrize("case", ["negative_scale_cube", pytest.param("authored_normals", marks=pytest.mark.slow)])
 def test_film_and_frozen_launches_shade_a_moving_mesh_alike(tmp_path, write_scene, case):
     # The frozen launch moves the mesh as an instance of its t = 0 pose; the film launch rewrites it. Same time,
     # independent seeds: the image means must agree within what each frame's own variance estimate allows
@@ -203,6 +204,7 @@ def test_a_refusal_names_every_cause_that_explains_it_in_one_command(tmp_path, w
     assert f"RENDER2SPIKE_VARIANT={pol}" in h
 
 
+@pytest.mark.slow
 def test_the_scalar_variant_moves_meshes_and_their_normals(tmp_path):
     # The scalar variants (the fallback without a working libLLVM) hold vertex buffers as drjit.scalar.ArrayXf,
     # where mi.Float is a Python float: the film launch could not move a mesh there at all before (a TypeError),
@@ -214,7 +216,7 @@ def test_the_scalar_variant_moves_meshes_and_their_normals(tmp_path):
     from pathlib import Path
     root = Path(__file__).resolve().parents[2]
     env = dict(os.environ, PYTHONPATH=str(root), RENDER2SPIKE_VARIANT="scalar_spectral")
-    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--basetemp",
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--runslow", "--basetemp",
                         str(tmp_path / "t"), f"{__file__}::test_a_moving_mesh_renders_as_it_stands_in_the_film_launch",
                         f"{__file__}::test_the_film_launch_carries_authored_normals_by_the_inverse_transpose",
                         f"{__file__}::test_the_scalar_variant_reports_its_variant"],

@@ -169,6 +169,7 @@ def test_snap_with_pair_noise_keeps_the_choice_and_the_ratio(z):
 
 
 @pytest.mark.render
+@pytest.mark.slow
 @needs_mitsuba
 def test_budget_prediction_matches_an_independent_measurement(write_scene, z):
     """A static textured scene: the pilot's predicted ratio (a pair at the chosen spp) and the ratio of an

@@ -44,7 +44,7 @@ def expected_e_per_lux(qe, step_nm=None):
     return num / den
 
 
-@pytest.mark.parametrize("launch", ["film", "frozen"])
+@pytest.mark.parametrize("launch", [pytest.param("film", marks=pytest.mark.slow), "frozen"])
 def test_lambertian_plane_E_and_Phi(tmp_path, write_scene, z, launch):
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene

@@ -83,6 +83,7 @@ def _same_estimator(a, b):
     assert lo < ratio < hi, (ratio, lo, hi)
 
 
+@pytest.mark.slow
 def test_meter_host_sum_estimates_what_mitsuba_render_does(tmp_path):
     """The meter's per-sample host sum against ``mi.render`` of the same meter (atomic float32 sums).
 
@@ -121,6 +122,7 @@ print(json.dumps({"variant": r.variant, "same": a == b,
 """
 
 
+@pytest.mark.slow
 def test_meter_on_the_scalar_variant_is_deterministic_and_agrees(tmp_path):
     """The scalar fallback evaluates the meter one sample per call: the same value twice, and the same
     estimate as the JIT variant's (8 seeds each, within 5 standard errors of the difference)."""
@@ -155,6 +157,7 @@ def two_runs(tmp_path_factory):
     return scene, outs
 
 
+@pytest.mark.slow
 def test_two_runs_give_identical_frames_and_spikes(two_runs):
     from sensor.io.spikefile import read_spikes
     _, (a, b) = two_runs
@@ -170,6 +173,7 @@ def test_two_runs_give_identical_frames_and_spikes(two_runs):
     assert names == sorted(names)  # file names sort in time order
 
 
+@pytest.mark.slow
 def test_killed_and_resumed_render_is_byte_identical(two_runs, tmp_path, monkeypatch):
     from render2spike.pipeline import simulate_frames
     from render2spike.render import renderer as rmod
@@ -210,6 +214,7 @@ def test_killed_and_resumed_render_is_byte_identical(two_runs, tmp_path, monkeyp
     assert np.array_equal(spikes.window(0, spikes.shape[0]), ref)
 
 
+@pytest.mark.slow
 def test_second_render_into_a_locked_folder_is_refused(two_runs, tmp_path, monkeypatch):
     """Two renders at once: the second (another process) is refused, naming the holder; nothing is mixed."""
     from render2spike.render import renderer as rmod
@@ -259,25 +264,28 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     assert sorted(p.name for p in gone) == sorted([f".spikes.part-{dead.pid}-abc.npz", old.name])
 
 
-def test_run_into_a_folder_of_another_seed_is_refused(two_runs):
-    scene, (a, _) = two_runs
+def test_run_into_a_folder_of_another_seed_is_refused(rendered_run, cli):
+    a = rendered_run.out  # the session's run, spike seed 3
+    argv = list(rendered_run.argv)
+    assert argv[-2:] == ["--seed", "3"]
     before = sorted((p.name, p.stat().st_mtime_ns) for p in a.rglob("*"))
-    r = _cli("run", str(scene), "--out", str(a), "--quiet", "--seed", "6")
+    r = cli(*argv[:-1], "6")
     assert r.returncode == 2 and "seed" in r.stderr and "--overwrite" in r.stderr, r.stderr
     assert sorted((p.name, p.stat().st_mtime_ns) for p in a.rglob("*")) == before
 
 
-def test_render_into_a_folder_of_other_files_is_refused(two_runs, tmp_path):
+def test_render_into_a_folder_of_other_files_is_refused(tmp_path, tmp_path_factory):
     from render2spike.render.job import render_scene
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
-    scene, _ = two_runs
+    scene = _scene(tmp_path_factory.mktemp("scene"))  # (outside the folder under test)
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(InputError, match="holds no render2spike frames"):
         render_scene(load_scene(scene), tmp_path, progress=False, log=lambda *x: None)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
 
 
+@pytest.mark.slow
 def test_progress_bar_never_goes_backwards(tmp_path, monkeypatch):
     """The bar counts camera time: its total is fixed and its position only grows, refinements included."""
     import tqdm.auto

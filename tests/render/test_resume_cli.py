@@ -1,8 +1,6 @@
 """Resume after an interrupted render, refusal of a changed scene, the CLI, and the backend probe."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -54,33 +52,27 @@ def test_resume_after_interrupt(tmp_path, write_scene, monkeypatch):
     assert {seq.read(i).header["target_lux"] for i in range(len(seq))} == {7.0}  # never mixed
 
 
-def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "render2spike", *args], capture_output=True, text=True,
-                          timeout=300)
-
-
-def test_cli_help_teaches():
+def test_cli_help_teaches(cli):
     for cmd in (["--help"], ["render", "--help"], ["run", "--help"]):
-        r = _cli(*cmd)
+        r = cli(*cmd)
         assert r.returncode == 0, r.stderr
-    assert "lux" in _cli("render", "--help").stdout and "e-/(s m^2)" in _cli("run", "--help").stdout
+    assert "lux" in cli("render", "--help").stdout and "e-/(s m^2)" in cli("run", "--help").stdout
 
 
-def test_cli_bad_scene_is_one_line(tmp_path):
+def test_cli_bad_scene_is_one_line(tmp_path, cli):
     p = tmp_path / "bad.yaml"
     p.write_text("camera: {profile: x, focal_length_mm: -1, f_number: 2}\n")
-    r = _cli("render", str(p), "--out", str(tmp_path / "o"))
+    r = cli("render", str(p), "--out", str(tmp_path / "o"))
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "camera.focal_length_mm" in r.stderr and str(p) in r.stderr
 
 
 @pytest.mark.render
 @needs_mitsuba
-def test_cli_run_end_to_end(tmp_path):
-    out = tmp_path / "run"
-    r = _cli("run", "lambertian_plane", "--out", str(out), "--duration", "0.01", "--spp", "8", "--quiet",
-             "--seed", "3")
-    assert r.returncode == 0, r.stderr
+def test_cli_run_end_to_end(rendered_run):
+    out = rendered_run.out  # the session's run, made in-process by the CLI (exit code 0):
+    assert rendered_run.argv == ("run", "lambertian_plane", "--out", str(out), "--duration", "0.01", "--spp", "8",
+                                 "--quiet", "--seed", "3")
     s = json.loads((out / "summary.json").read_text())
     assert s["intervals"] == 200 and s["frames"] == 3 and s["illuminance_lux"] == 100
     for f in ("spikes.npz", "preview.png", "preview.gif", "summary.md", "frames/frames.json"):

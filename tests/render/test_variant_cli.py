@@ -1,5 +1,6 @@
 """``--variant`` on `render` and `run`: the asked variant renders (over $RENDER2SPIKE_VARIANT), is recorded, and a
-folder rendered by one back end is not resumed by another."""
+folder rendered by one back end is not resumed by another. The renders run in child processes: Mitsuba's variant
+is set for the whole process."""
 
 import json
 import os
@@ -25,6 +26,7 @@ def _cli(*args, env_variant=None):
                           timeout=300, env=env, cwd=str(ROOT))
 
 
+@pytest.mark.slow
 def test_run_with_variant_wins_over_the_environment_and_is_recorded(tmp_path, write_scene):
     scene = write_scene()
     out = tmp_path / "run"
@@ -48,6 +50,7 @@ def _llvm_works():
 needs_llvm = pytest.mark.skipif(not _llvm_works(), reason="Mitsuba's LLVM variant does not work here")
 
 
+@pytest.mark.slow
 @needs_llvm
 def test_explicit_auto_ignores_the_environment(tmp_path, write_scene):
     scene = write_scene()
@@ -73,8 +76,8 @@ def test_another_back_end_does_not_resume_a_folder(tmp_path, write_scene):
     assert json.loads((out / "frames.json").read_text())["variant"] == "scalar_spectral"  # left as it was
 
 
-def test_unknown_variant_lists_the_choices(tmp_path, write_scene):
-    r = _cli("render", str(write_scene()), "--out", str(tmp_path / "x"), "--variant", "cuda_ad_rgb")
+def test_unknown_variant_lists_the_choices(tmp_path, write_scene, cli):
+    r = cli("render", str(write_scene()), "--out", str(tmp_path / "x"), "--variant", "cuda_ad_rgb")
     assert r.returncode == 2
     for name in ("auto", "cuda_ad_spectral", "llvm_ad_spectral", "scalar_spectral"):
         assert name in r.stderr

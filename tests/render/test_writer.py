@@ -98,6 +98,7 @@ def _same(a: Path, b: Path):
 
 
 @pytest.mark.render
+@pytest.mark.slow
 @needs_mitsuba
 def test_render_stops_on_a_write_error_and_resumes_exactly(tmp_path, monkeypatch):
     """A write failing mid-render: render_scene raises it; the journal lists only complete frames; a rerun
@@ -164,6 +165,7 @@ def _wait_journal(proc, out, lines=3, timeout=120):
 
 
 @pytest.mark.render
+@pytest.mark.slow
 @needs_mitsuba
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killed_render_leaves_complete_journalled_frames_and_resumes(tmp_path, sig):

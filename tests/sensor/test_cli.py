@@ -1,8 +1,6 @@
 """The sensor-stage CLI: simulate, calibrate, info; clear errors without tracebacks."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -109,6 +107,7 @@ def test_info_on_profile_and_spikes(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["intervals"] == 4
 
 
-def test_console_script_entry_point_runs():
-    r = subprocess.run([sys.executable, "-m", "render2spike", "simulate", "--help"], capture_output=True, text=True)
+def test_console_script_entry_point_runs(cli):
+    # in-process (``python -m render2spike`` itself runs in test_cli_blas.py)
+    r = cli("simulate", "--help")
     assert r.returncode == 0 and "photoelectrons per interval" in r.stdout

@@ -21,6 +21,9 @@ from sensor.profile import PROFILE_VERSION, RESETS
 from ..conftest import Z
 
 IMPLS = ["reference", "fast"]
+#: for the reference implementation's longest runs: slow tests (the fast one checks the same oracle by default,
+#: and the fast-vs-reference tests below keep the reference in the default run)
+IMPLS_SLOW_REFERENCE = [pytest.param("reference", marks=pytest.mark.slow), "fast"]
 
 
 def crossing_profile(h, w, theta, **kw):
@@ -244,7 +247,7 @@ def test_readout_isi_law_matches_the_phase_chain(impl, slow_scale):
 
 
 # --------------------------------------------------------------------------------------- dark only
-@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("impl", IMPLS_SLOW_REFERENCE)
 def test_dark_only_is_a_poisson_process_read_out(impl, slow_scale):
     H, W, T = 20, 20, 8000 * slow_scale
     prof = crossing_profile(H, W, 1000.0, dark_rate=0.05, dark_rate_spread=0.8, seed=3)
@@ -257,7 +260,7 @@ def test_dark_only_is_a_poisson_process_read_out(impl, slow_scale):
     assert np.abs(s.mean() - prof.dark_rate.mean()) > Z * np.sqrt((p_true * (1 - p_true)).mean() / s.size)
 
 
-@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("impl", IMPLS_SLOW_REFERENCE)
 def test_dark_events_are_lost_while_blind(impl):
     mu, f = 0.2, 0.6
     H, W, T = 20, 20, 6000
@@ -273,7 +276,7 @@ def test_dark_events_are_lost_while_blind(impl):
 
 
 # --------------------------------------------------------------------------------- refractory, PRNU
-@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("impl", IMPLS_SLOW_REFERENCE)
 def test_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(impl):
     lam, k, T, H, W = 6.0, 12, 3000, 20, 20
     for f in (0.0, 0.5):
@@ -304,7 +307,7 @@ def test_prnu_gain_sets_the_photoelectrons_needed(impl):
 
 
 # -------------------------------------------------------------------------------------------- hot pixels
-@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("impl", IMPLS_SLOW_REFERENCE)
 def test_hot_pixel_current_fires_at_every_whole_threshold(impl):
     # no light, no dark, f = 0, current X_m ~ N(mu, sigma^2) theta per interval with P(X < 0) ~ 1e-12: the charge
     # is never clipped and each firing keeps the rest of the interval's charge, so the firings by interval T are
@@ -350,7 +353,7 @@ def test_keyframed_input_follows_the_exact_phase_chain(impl, slow_scale):
 
 
 # ---------------------------------------------------------------------------------- chunk invariance
-@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("impl", IMPLS_SLOW_REFERENCE)
 def test_chunked_equals_whole_bitwise(impl):
     prof = sensor.SensorProfile.synthetic(12, 16, threshold_e=30, dark_rate=0.01, prnu_sigma=0.1,
                                           hot_pixel_fraction=0.05, refractory_s=0.3 * sensor.INTERVAL_S, seed=7,
@@ -413,6 +416,7 @@ def test_fast_agrees_with_reference_lag1_and_isi(k, lam, f, mu):
     assert stats.ks_2samp(nth_isis(fs, 4), nth_isis(rs, 4)).pvalue > 1e-4
 
 
+@pytest.mark.slow
 def test_negative_hot_current_is_clipped_like_the_reference():
     H, W, T = 10, 10, 3000
     prof = crossing_profile(H, W, 100.0, refractory_s=0.2 * sensor.INTERVAL_S, dark_rate=0.002)

@@ -1,6 +1,7 @@
 """Fitting the profile's dark rate and threshold to a recording: recovery on a synthetic camera, and the CLI."""
 
 import numpy as np
+import pytest
 
 import sensor
 from sensor.analysis.realism import fit_profile, scaled_profile
@@ -16,6 +17,7 @@ def _recording(seed, T=400, n=40):
     return rec, prof
 
 
+@pytest.mark.slow
 def test_fit_recovers_dark_rate_and_threshold(z):
     # start from a profile that is wrong by x1/1.6 in dark rate and x1/0.8 in threshold: the truth is at scales
     # (1.6, 0.8), between grid points (a coarser grid than the default, for speed). The n = 8 pixel draws are

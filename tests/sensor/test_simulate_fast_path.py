@@ -119,8 +119,7 @@ def test_compressed_or_damaged_exr_falls_back_to_openexr(tmp_path):
 
 def test_a_negative_attribute_size_is_refused_not_walked_forever(tmp_path):
     """A damaged header whose attribute size is negative once sent the header walk back to the same
-    attribute, forever (found by a review, 2026-11-27): the fast reader now leaves the file to OpenEXR,
-    which refuses it, naming it."""
+    attribute, forever: the fast reader now leaves the file to OpenEXR, which refuses it, naming it."""
     import struct
     write_frame(tmp_path / "a.exr", np.ones((2, 3), np.float32), time_s=0.0, attrs={"aa": 5})
     d = bytearray((tmp_path / "a.exr").read_bytes())
