@@ -30,7 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensor.models.effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
+from sensor.models.effects import (compute_collected_rate, compute_dark_events, compute_electron_rate, compute_fire,
+                      compute_hot_pixel_charge,
                       compute_hot_pixel_crossings, compute_light_or_dark_crossing, compute_prnu, compute_shot_noise,
                       count_threshold, dark_event_probability)
 from sensor.profile import SensorProfile
@@ -110,6 +111,8 @@ class ELSSimStep(SpikeModel):
         self.hot_index = np.flatnonzero(p.hot_mask)
         self.hot_mu = p.hot_mu.reshape(-1)[self.hot_index].astype(np.float64)
         self.hot_sigma = p.hot_sigma.reshape(-1)[self.hot_index].astype(np.float64)
+        #: dark current [e-/interval] added to the light (dark == "current"); None with dark events
+        self.dark_e = p.dark_current_e.astype(np.float64) if p.dark == "current" else None
 
     def init_state(self) -> dict:
         shape = self.profile.shape
@@ -120,7 +123,8 @@ class ELSSimStep(SpikeModel):
         out = np.zeros(lam.shape, bool)
         v, spiked = state["v"], state["spiked"]
         for i in range(lam.shape[0]):
-            expected = compute_collected_rate(lam[i].astype(np.float64), self.f_ref, spiked)
+            rate = compute_electron_rate(lam[i].astype(np.float64), self.dark_e)
+            expected = compute_collected_rate(rate, self.f_ref, spiked)
             v += compute_prnu(compute_shot_noise(expected, rng), self.gain)
             if self.has_dark:
                 v[compute_dark_events(self.p_dark, rng)] += theta
@@ -168,6 +172,8 @@ class ELSSimCrossingStep(SpikeModel):
         self.cold_index = np.flatnonzero(~hot)
         self.hot_mu = p.hot_mu.reshape(-1)[self.hot_index].astype(np.float64)
         self.hot_sigma = p.hot_sigma.reshape(-1)[self.hot_index].astype(np.float64)
+        #: dark current [e-/interval] added to the light of every pixel (dark == "current"); None with dark events
+        self.dark_e = p.dark_current_e.astype(np.float64).reshape(-1) if p.dark == "current" else None
 
     def init_state(self) -> dict:
         n = self.profile.height * self.profile.width
@@ -183,7 +189,7 @@ class ELSSimCrossingStep(SpikeModel):
         k_c, f_c, mu_c = self.k[cold], self.f[cold], self.mu[cold]
         for i in range(B):
             m = float(state["m"] + i)
-            lam_i = lam[i].reshape(-1).astype(np.float64)
+            lam_i = compute_electron_rate(lam[i].reshape(-1).astype(np.float64), self.dark_e)
             # ---- non-hot pixels: fire as often as the light / dark events say, vectorised
             sel = np.arange(cold.size)
             start = np.maximum(blind[cold], m)
@@ -251,6 +257,8 @@ class ISIModel(SpikeModel):
         self.k = count_threshold(p.threshold_e, p.prnu_gain)
         # dark + hot current as photoelectron equivalents per interval
         self.dark_q = (p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain.astype(np.float64)
+        if p.dark == "current":  # dark electrons per interval (counted as photoelectrons), not mu_DC theta / g
+            self.dark_q = self.dark_q + p.dark_current_e.astype(np.float64)
 
     def init_state(self) -> dict:
         # tau: time of the next firing [intervals since stream start]; NaN = not drawn (start, or no charge)
