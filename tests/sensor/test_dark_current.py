@@ -332,3 +332,38 @@ def test_fast_result_does_not_depend_on_thread_count(reset, monkeypatch):
     assert len(fast.ELSSimFast(prof).tiles) > 2
     np.testing.assert_array_equal(outs[0], outs[1])
     np.testing.assert_array_equal(outs[0], outs[2])
+
+
+# -------------------------------------------------------------------------------------------- calibrate
+@pytest.mark.parametrize("reset", RESETS)
+def test_calibrate_recovers_the_dark_current_within_its_standard_errors(reset):
+    from sensor.calibration.estimate import calibrate
+    H, W, T, n_dark = 12, 16, 6000, 3
+    true = sensor.SensorProfile.synthetic(H, W, threshold_e=100.0, dark="current", dark_current_e=1.5,
+                                          dark_current_spread=0.3, prnu_sigma=0.05, hot_pixel_fraction=0.01,
+                                          hot_mu=0.08, hot_sigma=0.02, refractory_s=0.1 * sensor.INTERVAL_S,
+                                          seed=21, reset=reset)
+    dark = [sensor.simulate(np.zeros((T, H, W), np.float32), true, seed=300 + i) for i in range(n_dark)]
+    flat = [sensor.simulate(np.full((T, H, W), lv, np.float32), true, seed=400 + i)
+            for i, lv in enumerate((3.0, 8.0, 20.0))]
+    base = true.replace(dark="events", dark_current_e=np.zeros((H, W)))
+    est, report = calibrate(dark, flat, base=base, reset=reset, estimate_threshold=False, dark_mode="current")
+    assert est.dark == "current" and not est.dark_rate.any() and report.numbers["dark_mode"] == "current"
+    n = ~true.hot_mask & ~est.hot_mask
+    # identifiable: the dark rate in thresholds, d / k, with k = ceil(theta / g) electrons to fire, and the gain up
+    # to the common scale of its normalisation (mean 1 over the normal pixels). With the threshold given (theta),
+    # the calibration's k is theta / g_hat, g_hat estimating the effective gain theta / k normalised to mean 1,
+    # so d_hat estimates (d / k) theta / g_norm; the stated SE includes the gain's error
+    from sensor.models.effects import count_threshold
+    k_true = count_threshold(true.threshold_e, true.prnu_gain)
+    g_eff = true.threshold_e / k_true
+    g_norm = g_eff / g_eff[n].mean()
+    d_true = true.dark_current_e.astype(np.float64) / k_true * true.threshold_e / g_norm
+    se = report.dark_current_se
+    z = (est.dark_current_e.astype(np.float64) - d_true)[n] / se[n]
+    zb = float(stats.norm.isf(1e-3 / (2 * n.sum())))
+    assert np.abs(z).max() < zb, (np.abs(z).max(), zb)
+    # the errors are the stated size: mean z^2 is 1 within its sampling error (sd sqrt(2 / n) for normal z)
+    assert abs(np.mean(z ** 2) - 1.0) < Z * np.sqrt(2.0 / n.sum()), np.mean(z ** 2)
+    rel = np.median(se[n] / d_true[n])
+    assert rel < 0.05  # the test has teeth: a 5 % error in the map would be seen
