@@ -367,3 +367,65 @@ def test_calibrate_recovers_the_dark_current_within_its_standard_errors(reset):
     assert abs(np.mean(z ** 2) - 1.0) < Z * np.sqrt(2.0 / n.sum()), np.mean(z ** 2)
     rel = np.median(se[n] / d_true[n])
     assert rel < 0.05  # the test has teeth: a 5 % error in the map would be seen
+
+
+# ---------------------------------------------------------------------------------------------- realism
+@pytest.mark.parametrize("reset", RESETS)
+def test_light_estimates_take_the_dark_current_off(reset):
+    # exact round trip: the rate law at lambda + d, inverted by the realism report's and the fit's inversions
+    from sensor.analysis.light import estimate_light
+    from sensor.calibration.flatfield import spike_rate
+    from sensor.calibration.vidar import light_for_rate
+    from sensor.models.effects import count_threshold
+    prof = current_profile(3, 4, 200.0, 4.0, reset=reset, dark_current_spread=0.5, prnu_sigma=0.05, seed=3,
+                           refractory_s=0.05 * sensor.INTERVAL_S)
+    lam = np.linspace(2.0, 60.0, 12).reshape(3, 4)
+    k = count_threshold(prof.threshold_e, prof.prnu_gain)
+    f = prof.refractory_fraction.astype(np.float64)
+    d = prof.dark_current_e.astype(np.float64)
+    rate = spike_rate(reset, (lam + d) / k, k, np.zeros((3, 4)), f)
+    np.testing.assert_allclose(light_for_rate(rate, prof), lam, rtol=1e-5)
+    if reset == "interval":
+        est, how = estimate_light(rate, prof, "elssim")
+        # invert_renewal_rate interpolates tables of the exact law: < 1e-3 relative error in lambda + d
+        assert np.all(np.abs(est - lam) <= 1e-3 * (lam + d)), est - lam
+        assert "dark current" in how
+    # a rate at the dark floor or below gives no light
+    assert not light_for_rate(spike_rate(reset, d / k, k, np.zeros((3, 4)), f) * 0.99, prof).any()
+
+
+def test_realism_report_and_fit_run_in_current_mode(tmp_path):
+    import json
+
+    from render2spike.cli import main
+    from sensor.analysis.fit import as_dark_mode, scaled_profile
+    H = W = 16
+    T = 300
+    prof = current_profile(H, W, 200.0, 2.0, dark_current_spread=0.3, seed=4, refractory_s=sensor.TIME_UNIT_S)
+    lam = np.repeat(np.geomspace(5.0, 80.0, 8), W // 8).astype(np.float32)
+    rec = sensor.simulate(np.broadcast_to(lam[None, None, :], (T, H, W)), prof, seed=40)
+    prof.save(tmp_path / "prof.npz")
+    np.savez(tmp_path / "rec.npz", spk=rec.astype(np.uint8))
+    out = tmp_path / "rep"
+    args = ["realism", str(tmp_path / "rec.npz"), "--out", str(out), "--profile", str(tmp_path / "prof.npz"),
+            "--models", "elssim:crossing", "--fit", "--fit-seeds", "2", "--fit-pixels", "60", "--quiet"]
+    assert main(args) == 0
+    summary = json.loads((out / "realism.json").read_text())
+    sim_rate = summary["models"]["elssim:crossing"]["mean_rate_per_interval"]
+    real_rate = rec.mean()
+    # per-pixel light reproduces the rate when the dark current is taken off (pixel rates are independent: the
+    # SE of the mean over pixels of the difference is at most sqrt(2) x that of the recording's pixel rates)
+    se = np.sqrt(2.0) * rec.mean(axis=0).std(ddof=1) / np.sqrt(H * W)
+    assert abs(sim_rate - real_rate) < Z * se, (sim_rate, real_rate, se)
+    fitted = sensor.SensorProfile.load(out / "fitted_profile.npz")
+    fit = summary["fit"]
+    assert fitted.dark == "current" and fit["dark"] == "current"
+    np.testing.assert_allclose(fitted.dark_current_e, prof.dark_current_e * fit["dark_scale"]
+                               * fit["threshold_scale"], rtol=1e-5)
+    # an events profile fitted in current mode: converted at the same dark firing rate first
+    ev = sensor.SensorProfile.synthetic(4, 4, threshold_e=100.0, dark_rate=0.01, prnu_sigma=0.05, seed=1)
+    cu = as_dark_mode(ev, "current")
+    np.testing.assert_allclose(cu.dark_current_e * cu.prnu_gain / cu.threshold_e, ev.dark_rate, rtol=1e-5)
+    np.testing.assert_allclose(as_dark_mode(cu, "events").dark_rate, ev.dark_rate, rtol=1e-5)
+    sc = scaled_profile(cu, 0.5, 2.0)
+    np.testing.assert_allclose(sc.dark_current_e * sc.prnu_gain / sc.threshold_e, 0.5 * ev.dark_rate, rtol=1e-5)
