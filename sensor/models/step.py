@@ -93,7 +93,8 @@ class IdealModel(SpikeModel):
 class ELSSimStep(SpikeModel):
     """Algorithm 2, step by step (the reference definition of ``elssim``).
 
-    Per interval, in this order: refractory-scaled expected count (Eq. 6),
+    Per interval, in this order: the electron rate (light plus dark current when
+    ``dark == "current"``), refractory-scaled expected count (Eq. 6),
     Poisson shot noise, PRNU gain, dark event (Eq. 1), hot-pixel charge
     (Eq. 4), clip at zero, fire and reset to zero. Random draws per interval, in
     this order: Poisson (H, W), uniform (H, W), normal (number of hot pixels).
@@ -139,6 +140,9 @@ class ELSSimStep(SpikeModel):
 
 class ELSSimCrossingStep(SpikeModel):
     """``elssim`` with the crossing reset, interval by interval with exact firing times (the reference).
+
+    With ``dark == "current"`` every pixel's photoelectron rate is ``lambda_m + dark_current_e``
+    (:func:`compute_electron_rate`) and there are no dark events (mu_DC = 0).
 
     The model (see :mod:`sensor.models.effects`, "The crossing reset", and docs/sensor.md):
     within interval m photoelectrons arrive as a Poisson process of rate lambda_m;
@@ -246,7 +250,10 @@ class ISIModel(SpikeModel):
     period, and the fractional phase is kept in continuous time; the spike is
     read out in the interval containing its time (integer-ISI quantisation).
     Several firings inside one interval give one spike. Hot pixels add a
-    constant current ``hot_mu * theta`` (their sigma is ignored).
+    constant current ``hot_mu * theta`` (their sigma is ignored). With
+    ``dark == "current"`` the dark term is the pixel's ``dark_current_e``
+    (dark electrons per interval, counted as photoelectrons) instead of
+    ``mu_DC * theta / g``.
     """
 
     name = "isi"
