@@ -429,3 +429,20 @@ def test_realism_report_and_fit_run_in_current_mode(tmp_path):
     np.testing.assert_allclose(as_dark_mode(cu, "events").dark_rate, ev.dark_rate, rtol=1e-5)
     sc = scaled_profile(cu, 0.5, 2.0)
     np.testing.assert_allclose(sc.dark_current_e * sc.prnu_gain / sc.threshold_e, 0.5 * ev.dark_rate, rtol=1e-5)
+
+
+@pytest.mark.parametrize("reset", RESETS)
+def test_deadtime_corrected_tfp_takes_the_dark_current_off(reset):
+    from recon.classic import deadtime_correct
+    from sensor.calibration.flatfield import spike_rate
+    from sensor.models.effects import count_threshold
+    prof = current_profile(2, 3, 200.0, 5.0, reset=reset, dark_current_spread=0.4, seed=2,
+                           refractory_s=sensor.TIME_UNIT_S)
+    lam = np.array([[3.0, 10.0, 20.0], [40.0, 60.0, 90.0]])
+    k = count_threshold(prof.threshold_e, prof.prnu_gain)
+    d = prof.dark_current_e.astype(np.float64)
+    rate = spike_rate(reset, (lam + d) / k, k, np.zeros((2, 3)), prof.refractory_fraction.astype(np.float64))
+    est = deadtime_correct(rate, prof)
+    # no PRNU (one k for all pixels, which the crossing table assumes): both inversions interpolate tables of the
+    # exact law, whose error (< 1e-3 relative for the renewal table, see invert_renewal_rate) is in lambda + d
+    assert np.all(np.abs(est - lam) <= 1e-3 * (lam + d)), est - lam
