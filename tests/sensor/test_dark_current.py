@@ -438,7 +438,7 @@ def test_deadtime_corrected_tfp_takes_the_dark_current_off(reset):
     from sensor.models.effects import count_threshold
     prof = current_profile(2, 3, 200.0, 5.0, reset=reset, dark_current_spread=0.4, seed=2,
                            refractory_s=sensor.TIME_UNIT_S)
-    lam = np.array([[3.0, 10.0, 20.0], [40.0, 60.0, 90.0]])
+    lam = np.array([[3.0, 10.0, 20.0], [30.0, 40.0, 50.0]])  # below the staircase of the interval reset
     k = count_threshold(prof.threshold_e, prof.prnu_gain)
     d = prof.dark_current_e.astype(np.float64)
     rate = spike_rate(reset, (lam + d) / k, k, np.zeros((2, 3)), prof.refractory_fraction.astype(np.float64))
