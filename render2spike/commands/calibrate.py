@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-HELP = "estimate a sensor profile from dark and flat-field spike recordings"
+HELP = "estimate a sensor profile from dark and flat-field spike recordings, or import RSIR calibration maps"
 DESCRIPTION = """\
 Estimate the fixed-pattern maps of your spike camera (paper Eqs. 2-5):
 
@@ -31,12 +31,21 @@ Refractory time, pixel pitch, fill factor and QE are copied from --base (the bas
 only a starting point, unless --keep-threshold).
 Recordings are SpikeCV .dat files (give --height/--width; raw 416-wide captures: --raw)
 or render2spike .npz spike containers. Writes PROFILE plus PROFILE-stem_report.{png,json}.
+
+--from-rsir MAPS.npz imports RSIR calibration maps instead (keys Nd, Nl, D_light, each (H, W); mean
+read-out ISI 1 + D_light (335 + Nd) / (lux + Nd) intervals, lux at the focal plane). With the base
+profile's sensitivity s [e-/(interval lux)]: threshold theta = median of s q, q = (1 - f + D_light)
+(335 + Nd), PRNU gain theta / (s q), dark current s Nd [e-/interval] (stored as dark events of the
+same dark-only rate), and RSIR's "+1" as a one-interval blind time (--plus-one dead-time) or folded
+into the threshold at 335 lux (--plus-one threshold). The maps fix theta / s, not s: pitch, fill
+factor, QE, the reset and hot-pixel statistics come from --base. Writes PROFILE only.
 """
 EXAMPLES = """\
 examples:
   render2spike calibrate --dark dark/*.dat --flat flat/*.dat --raw --out mycam.npz
   render2spike calibrate --dark d*.npz --flat f*.npz --base vidar-default --out mycam.npz
   render2spike calibrate --dark d*.dat --flat f1.dat f2.dat f3.dat --flat-lux 0.5 1.5 3 --raw --out mycam.npz
+  render2spike calibrate --from-rsir rsir_maps.npz --base vidar-default --out rsir-vidar.npz
 """
 
 
@@ -44,13 +53,22 @@ def register(sub) -> None:
     from sensor.calibration.estimate import DEFAULT_HOT_THRESHOLD
     from render2spike.commands._common import HelpFormatter, add_overwrite
     p = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
-    p.add_argument("--dark", nargs="+", required=True, metavar="FILE", help="dark recordings (the paper uses 20)")
-    p.add_argument("--flat", nargs="+", required=True, metavar="FILE",
+    p.add_argument("--dark", nargs="+", metavar="FILE", help="dark recordings (the paper uses 20)")
+    p.add_argument("--flat", nargs="+", metavar="FILE",
                    help="flat-field recordings, one per brightness level (>= 2 levels)")
+    p.add_argument("--from-rsir", default=None, metavar="MAPS.npz",
+                   help="import RSIR calibration maps (keys Nd, Nl, D_light) instead of --dark/--flat")
+    p.add_argument("--kelvin", type=float, default=None, metavar="K",
+                   help="--from-rsir: colour temperature of the flats' light, for lux -> photoelectrons "
+                        "(default 5000)")
+    p.add_argument("--plus-one", choices=["dead-time", "threshold"], default=None,
+                   help="--from-rsir: where RSIR's '+1' goes: a one-interval blind time after each firing "
+                        "(RSIR's law at every illuminance; default) or the threshold at 335 lux (the base's "
+                        "blind time kept)")
     p.add_argument("--out", required=True, metavar="PROFILE", help="output profile (.npz)")
     p.add_argument("--base", default="vidar-default", metavar="NAME|PATH",
                    help="profile supplying threshold, refractory time, pitch, fill factor, QE (default: vidar-default)")
-    p.add_argument("--name", default=None, help="name stored in the profile (default: calibrated-<base>)")
+    p.add_argument("--name", default=None, help="name stored in the profile (default: calibrated-<base>; with --from-rsir: rsir-<maps stem>)")
     p.add_argument("--hot-threshold", type=float, default=DEFAULT_HOT_THRESHOLD, metavar="SPIKES",
                    help=f"theta_HT in spikes per interval above the median dark rate (default {DEFAULT_HOT_THRESHOLD})")
     p.add_argument("--height", type=int, default=None, help=".dat frame height (default: the base profile's)")
@@ -74,6 +92,15 @@ def register(sub) -> None:
 def run(args) -> int:
     from render2spike.commands._common import check_output
     from sensor import SensorProfile
+    from sensor.errors import InputError
+    if args.from_rsir is not None:
+        return run_rsir(args)
+    for flag in ("kelvin", "plus_one"):
+        if getattr(args, flag) is not None:
+            raise InputError("applies only with --from-rsir", field="--" + flag.replace("_", "-"))
+    if not args.dark or not args.flat:
+        raise InputError("calibrate needs --dark and --flat recordings, or --from-rsir MAPS.npz",
+                         field="--flat" if args.dark else "--dark")
     from sensor.calibration.estimate import calibrate, write_report
     base_path = args.base if Path(args.base).exists() else None
     out = check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
@@ -103,4 +130,32 @@ def run(args) -> int:
         print(f"sensitivity {n['sensitivity_e_per_lux']:.2f} +- {n['sensitivity_se']:.2f} photoelectrons per lux "
               "per interval")
     print("report: " + ", ".join(str(f) for f in files))
+    return 0
+
+
+def run_rsir(args) -> int:
+    """``calibrate --from-rsir``: RSIR maps -> profile (nothing is written unless every check passes)."""
+    from render2spike.commands._common import check_output
+    from sensor import SensorProfile
+    from sensor.calibration.rsir import DEFAULT_KELVIN, import_rsir, load_rsir_maps, rsir_profile
+    from sensor.errors import InputError
+    given = [f for f, v in (("--dark", args.dark), ("--flat", args.flat), ("--flat-lux", args.flat_lux),
+                            ("--reset", args.reset), ("--keep-threshold", args.keep_threshold), ("--raw", args.raw),
+                            ("--height", args.height), ("--width", args.width)) if v]
+    if given:
+        raise InputError(f"--from-rsir imports maps; {', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} "
+                         "only to calibration from recordings", field=given[0])
+    base_path = args.base if Path(args.base).exists() else None
+    check_output(args.out, inputs=[args.from_rsir, base_path], overwrite=args.overwrite)
+    base = SensorProfile.load(args.base)
+    maps = load_rsir_maps(args.from_rsir)
+    imp = import_rsir(maps, base, plus_one=args.plus_one or "dead-time",
+                      kelvin=DEFAULT_KELVIN if args.kelvin is None else args.kelvin, source=str(args.from_rsir))
+    prof = rsir_profile(imp, base, name=args.name or f"rsir-{Path(args.from_rsir).stem}")
+    out = prof.save(args.out)
+    n = imp.summary()
+    print(f"wrote {out}: {n['resolution']}, threshold {n['threshold_e']:.0f} e- (s = "
+          f"{n['sensitivity_e_per_lux']:.2f} e-/(interval lux) from '{base.name}'), PRNU sd/mean "
+          f"{n['prnu_sd_over_mean']:.4f}, dark current median {n['dark_current_e_median']:.1f} e-/interval "
+          f"(stored as dark events, median {n['dark_rate_median']:.5f}/interval), '+1' as {n['plus_one']}")
     return 0
