@@ -163,7 +163,7 @@ def add_fit(result, spikes, base, profile, specs, out, args, say) -> None:
     f = fit(spikes, profile, seed=args.seed, n_seeds=args.fit_seeds, n_pixels=args.fit_pixels,
             segments=args.segments, alpha=args.alpha, dark_mode=mode, progress=say)
     base = as_dark_mode(base, mode)
-    say(f"fit: dark rate x{f.dark_scale:.3g} +- {f.dark_scale_sd:.2g}, threshold x{f.threshold_scale:.3g} +- "
+    say(f"fit: dark {'current' if mode == 'current' else 'rate'} x{f.dark_scale:.3g} +- {f.dark_scale_sd:.2g}, threshold x{f.threshold_scale:.3g} +- "
         f"{f.threshold_scale_sd:.2g} (sd over {args.fit_seeds} draws) in {f.notes['seconds']:.1f} s")
     full = scaled_profile(base, f.dark_scale, f.threshold_scale, name=f"{base.name}-fitted")
     full = full.replace(provenance={**(base.provenance or {}), "fitted": {
