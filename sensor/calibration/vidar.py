@@ -62,9 +62,9 @@ PROVENANCE = {
              "-0.07, interval 0.00; at 40-100 nothing is resolved. Independently, issue 8 reports -0.51/-0.49/-0.48 "
              "(mean ISI 3-6/6-10/10-20) on a 250 x 400 outdoor Vidar recording against -0.02 for the interval "
              "reset.",
-    "dark": "events (Algorithm 2 as published: dark_rate dark events per interval, each fires the pixel). The "
-            "alternative, dark='current' (dark electrons per interval integrated with the light), is not yet "
-            "calibrated for this profile.",
+    "dark": "events (Algorithm 2 as published: dark_rate dark events per interval, each fires the pixel). This "
+            "profile keeps the paper's dark events; dark='current' (dark electrons per interval integrated with the "
+            "light) is the alternative, with no calibrated map here.",
     "dark_current_e": "zero: this profile's dark current is the dark_rate map of dark events (dark='events').",
 }
 
