@@ -201,7 +201,9 @@ def deadtime_correct(rate, profile, correct_hot_pixels: bool = True) -> np.ndarr
 
     ``rate`` float (H, W) [spikes per interval] (TFP, or a smoothed TFP) ->
     ``rate_e`` float32 (H, W) [e-/interval], per pixel with the profile's
-    ``k``, refractory fraction, dark probability and hot-pixel charge.
+    ``k``, refractory fraction, dark probability and hot-pixel charge; with
+    ``dark == "current"`` the inversion gives ``lambda + d`` and the pixel's
+    dark current ``d`` is taken off.
     """
     from sensor.models.effects import count_threshold, dark_event_probability
     r = np.asarray(rate, np.float64)
@@ -216,6 +218,8 @@ def deadtime_correct(rate, profile, correct_hot_pixels: bool = True) -> np.ndarr
     else:
         lam = invert_renewal_rate(r, k, profile.refractory_fraction.astype(np.float64),
                                   dark_event_probability(profile.dark_rate))
+    if getattr(profile, "dark", "events") == "current":  # the rate came from lambda + d: take the dark current off
+        lam = np.maximum(lam - profile.dark_current_e.astype(np.float64), 0.0)
     if correct_hot_pixels and profile.hot_mask.any():
         hot = profile.hot_mask
         lam[hot] = np.maximum(lam[hot] - profile.hot_mu[hot] * profile.threshold_e / gain[hot], 0.0)

@@ -6,17 +6,18 @@ and its per-pixel fixed-pattern maps. The maps are drawn once (by
 stored; every simulation reads them from the profile, so two simulations of the
 same profile see the same sensor.
 
-File format (``.npz``, version 2)
+File format (``.npz``, version 3)
 ---------------------------------
 A numpy ``.npz`` archive (zip, compressed) holding
 
-* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields (``reset``
-  included), the QE curve, the provenance of every value and the format version;
+* ``meta_json``: uint8 array, the UTF-8 JSON of the scalar fields (``reset`` and
+  ``dark`` included), the QE curve, the provenance of every value and the format version;
 * the maps, each float32 (H, W) unless noted:
   ``dark_rate`` (mu_DC, expected dark events per interval), ``hot_mask`` (bool),
   ``hot_mu`` and ``hot_sigma`` (hot-pixel charge per interval in units of the
   threshold, zero outside the mask), ``prnu_gain`` (dimensionless, mean ~1),
-  ``refractory_s`` (seconds).
+  ``refractory_s`` (seconds), ``dark_current_e`` (dark current, electrons per interval
+  generated in the photodiode; zero unless ``dark == "current"``).
 
 See ``docs/sensor.md`` for the meaning of every field.
 """
@@ -38,15 +39,22 @@ from sensor.spectral import SpectralCurve
 from sensor.units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, per_interval_to_hz, seconds_to_intervals
 
 PROFILE_FORMAT = "render2spike-sensor-profile"
-PROFILE_VERSION = 2
+PROFILE_VERSION = 3
 #: how a pixel resets (see ``docs/sensor.md``, "The crossing reset"):
 #: ``interval`` = Algorithm 2 as published (the charge is tested and reset at the end of each interval, the
 #: excess is discarded); ``crossing`` = continuous time (the pixel fires the moment its charge reaches theta,
 #: resets then, is blind for ``refractory_s`` and keeps integrating; the read-out reports at most one spike per
 #: interval)
 RESETS = ("interval", "crossing")
+#: how dark current acts (see ``docs/sensor.md``, "Dark current: events or charge"):
+#: ``events`` = Algorithm 2 as published (a Poisson number of dark events per interval, mu_DC = ``dark_rate``; each
+#: adds theta and fires the pixel); ``current`` = a charge: ``dark_current_e`` electrons per interval generated in
+#: the photodiode, integrated with the photoelectrons (Poisson arrivals of rate lambda + dark_current_e, counted
+#: toward the same k = ceil(theta / g), lost in the blind time like light). Each mode uses only its own map; the
+#: other must be zero.
+DARK_MODES = ("events", "current")
 DATA_DIR = Path(__file__).with_name("data")
-MAP_NAMES = ("dark_rate", "hot_mask", "hot_mu", "hot_sigma", "prnu_gain", "refractory_s")
+MAP_NAMES = ("dark_rate", "hot_mask", "hot_mu", "hot_sigma", "prnu_gain", "refractory_s", "dark_current_e")
 MAP_UNITS = {
     "dark_rate": "expected dark events per interval (mu_DC, Eq. 1-2)",
     "hot_mask": "bool, True where the pixel is hot (Eq. 3)",
@@ -54,6 +62,8 @@ MAP_UNITS = {
     "hot_sigma": "std of hot-pixel charge per interval, in units of the threshold (Eq. 4)",
     "prnu_gain": "photo-response gain, dimensionless, mean ~1 (Eq. 5)",
     "refractory_s": "refractory (recharge) time after a spike [s] (Eq. 6)",
+    "dark_current_e": "dark current [e- per interval] generated in the photodiode, integrated with the light "
+                      "(dark == 'current'; zero otherwise)",
 }
 
 
@@ -98,6 +108,12 @@ class SensorProfile:
         as published: test and reset at the end of each interval, excess charge
         discarded) or ``"crossing"`` (reset at the moment the charge reaches the
         threshold, integration continues; at most one spike read out per interval).
+    dark : str
+        How dark current acts, one of :data:`DARK_MODES`: ``"events"`` (Algorithm 2
+        as published: ``dark_rate`` dark events per interval, each fires the pixel)
+        or ``"current"`` (``dark_current_e`` electrons per interval integrated with
+        the photoelectrons, with their own shot noise). The map of the other mode
+        must be zero.
 
     Maps (H, W)
     -----------
@@ -124,12 +140,16 @@ class SensorProfile:
     raw_width: int | None = None
     qe: SpectralCurve = field(default_factory=generic_cmos_qe)
     reset: str = "interval"
+    dark: str = "events"
+    dark_current_e: np.ndarray | None = None
     provenance: dict = field(default_factory=dict)
     meta: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.height, self.width = int(self.height), int(self.width)
         shape = (self.height, self.width)
+        if self.dark_current_e is None:
+            self.dark_current_e = np.zeros(shape, np.float32)
         for nm in MAP_NAMES:
             arr = np.asarray(getattr(self, nm))
             if arr.ndim == 0:
@@ -158,8 +178,19 @@ class SensorProfile:
             bad("fill_factor", f"must be in (0, 1], got {self.fill_factor}")
         if not self.pixel_pitch_m > 0:
             bad("pixel_pitch_m", f"must be > 0 m, got {self.pixel_pitch_m}")
+        if self.dark not in DARK_MODES:
+            bad("dark", f"unknown dark mode '{self.dark}'; valid choices: {', '.join(DARK_MODES)}")
         if not np.all(np.isfinite(self.dark_rate)) or np.any(self.dark_rate < 0):
             bad("dark_rate", "must be finite and >= 0 (expected dark events per interval)")
+        if not np.all(np.isfinite(self.dark_current_e)) or np.any(self.dark_current_e < 0):
+            bad("dark_current_e", "must be finite and >= 0 (dark electrons per interval)")
+        if self.dark == "current" and np.any(self.dark_rate != 0):
+            bad("dark_rate", f"dark='current' takes the dark current from dark_current_e [e-/interval]; dark_rate "
+                             f"(dark events) must then be zero, got up to {float(self.dark_rate.max()):.4g} per interval")
+        if self.dark == "events" and np.any(self.dark_current_e != 0):
+            bad("dark_current_e", f"dark='events' takes the dark current from dark_rate [events/interval]; "
+                                  f"dark_current_e must then be zero, got up to {float(self.dark_current_e.max()):.4g} "
+                                  "e- per interval (set dark='current' to use it)")
         if not np.all(np.isfinite(self.prnu_gain)) or np.any(self.prnu_gain <= 0):
             bad("prnu_gain", "must be finite and > 0")
         if np.any(self.hot_sigma < 0) or not np.all(np.isfinite(self.hot_sigma)) or \
@@ -197,7 +228,8 @@ class SensorProfile:
                   refractory_s: float = TIME_UNIT_S, seed: int = 0, name: str | None = None,
                   interval_s: float = INTERVAL_S, clock_hz: float = CLOCK_HZ, pixel_pitch_m: float = 20e-6,
                   fill_factor: float = 0.5, raw_width: int | None = None, qe: SpectralCurve | None = None,
-                  reset: str = "interval", provenance: dict | None = None) -> "SensorProfile":
+                  reset: str = "interval", dark: str = "events", dark_current_e: float = 0.0,
+                  dark_current_spread: float = 0.0, provenance: dict | None = None) -> "SensorProfile":
         """Draw a sensor instance with chosen statistics.
 
         Parameters
@@ -226,16 +258,34 @@ class SensorProfile:
             Seed of the fixed-pattern draw (one ``numpy.random.Generator``).
         reset : str
             ``"interval"`` (Algorithm 2, default) or ``"crossing"`` (see :data:`RESETS`).
+        dark : str
+            ``"events"`` (default: ``dark_rate`` dark events) or ``"current"`` (see :data:`DARK_MODES`).
+        dark_current_e : float
+            With ``dark="current"``: population mean of the dark current [e- per interval].
+        dark_current_spread : float
+            Sigma of the log of a log-normal dark-current map (mean kept); 0 = uniform.
+
+        With ``dark="current"`` the dark-current map is drawn from the stream that draws the
+        dark-rate map in events mode, and ``dark_rate`` must be 0.
         """
         h, w = int(height), int(width)
         ss = np.random.SeedSequence(int(seed))
         g_dark, g_prnu, g_hot = (np.random.Generator(np.random.PCG64(s)) for s in ss.spawn(3))
-        if dark_rate_spread > 0:
+        if dark not in DARK_MODES:
+            raise ProfileError(f"unknown dark mode '{dark}'; valid choices: {', '.join(DARK_MODES)}", field="dark")
+        if dark == "current" and dark_rate != 0:
+            raise ProfileError("dark='current' takes dark_current_e [e-/interval]; dark_rate (dark events) must be 0, "
+                               f"got {dark_rate}", field="dark_rate")
+        if dark == "events" and dark_current_e != 0:
+            raise ProfileError("dark='events' takes dark_rate [events/interval]; dark_current_e must be 0 (set "
+                               f"dark='current' to use it), got {dark_current_e}", field="dark_current_e")
+        level, spread = (dark_current_e, dark_current_spread) if dark == "current" else (dark_rate, dark_rate_spread)
+        if spread > 0:
             # log-normal with the requested mean
-            s = float(dark_rate_spread)
-            dark = dark_rate * np.exp(g_dark.normal(-0.5 * s * s, s, size=(h, w)))
+            s = float(spread)
+            dmap = level * np.exp(g_dark.normal(-0.5 * s * s, s, size=(h, w)))
         else:
-            dark = np.full((h, w), dark_rate)
+            dmap = np.full((h, w), level)
         gain = np.ones((h, w)) if prnu_sigma <= 0 else np.clip(g_prnu.normal(1.0, prnu_sigma, (h, w)), 0.05, None)
         n_hot = int(round(hot_pixel_fraction * h * w))
         mask = np.zeros(h * w, bool)
@@ -250,21 +300,28 @@ class SensorProfile:
             # convention shared with calibration: a hot pixel's ordinary dark events happen at the population
             # median rate; everything it has in excess is hot-pixel charge (hot_mu, hot_sigma). Dark recordings
             # cannot tell a hot pixel's own mu_DC from its hot charge, so this is the identifiable split.
-            dark = dark.reshape(-1)
-            dark[idx] = np.median(np.delete(dark, idx))
-            dark = dark.reshape(h, w)
+            # (the same split for the dark current in "current" mode)
+            dmap = dmap.reshape(-1)
+            dmap[idx] = np.median(np.delete(dmap, idx))
+            dmap = dmap.reshape(h, w)
+        zero = np.zeros((h, w))
+        dark_maps = {"dark_rate": dmap, "dark_current_e": zero} if dark == "events" else \
+            {"dark_rate": zero, "dark_current_e": dmap}
         prov = {
             "maps": f"drawn by SensorProfile.synthetic(seed={seed}, dark_rate={dark_rate}, "
-                    f"dark_rate_spread={dark_rate_spread}, prnu_sigma={prnu_sigma}, "
+                    f"dark_rate_spread={dark_rate_spread}, "
+                    + (f"dark='current', dark_current_e={dark_current_e}, dark_current_spread={dark_current_spread}, "
+                       if dark == "current" else "") + f"prnu_sigma={prnu_sigma}, "
                     f"hot_pixel_fraction={hot_pixel_fraction}, hot_mu={hot_mu}, hot_mu_spread={hot_mu_spread}, "
                     f"hot_sigma={hot_sigma})",
         }
         prov.update(provenance or {})
         return cls(name=name or f"synthetic-{h}x{w}-seed{seed}", height=h, width=w, threshold_e=float(threshold_e),
-                   dark_rate=dark, hot_mask=mask.reshape(h, w), hot_mu=hmu.reshape(h, w),
+                   hot_mask=mask.reshape(h, w), hot_mu=hmu.reshape(h, w),
                    hot_sigma=hsig.reshape(h, w), prnu_gain=gain, refractory_s=np.full((h, w), refractory_s),
                    interval_s=interval_s, clock_hz=clock_hz, pixel_pitch_m=pixel_pitch_m, fill_factor=fill_factor,
-                   raw_width=raw_width, qe=qe or generic_cmos_qe(), reset=reset, provenance=prov)
+                   raw_width=raw_width, qe=qe or generic_cmos_qe(), reset=reset, dark=dark, provenance=prov,
+                   **dark_maps)
 
     def window(self, top: int, left: int, height: int, width: int, name: str | None = None) -> "SensorProfile":
         """The same sensor restricted to a rectangular window of pixels (for small experiments)."""
@@ -309,6 +366,7 @@ class SensorProfile:
             "fill_factor": self.fill_factor,
             "raw_width": self.raw_width,
             "reset": self.reset,
+            "dark": self.dark,
             "qe": self.qe.to_dict(),
             "map_units": MAP_UNITS,
             "provenance": self.provenance,
@@ -365,6 +423,10 @@ class SensorProfile:
         if int(meta.get("version", 0)) > PROFILE_VERSION:
             raise ProfileError(f"profile version {meta['version']} is newer than this reader "
                                f"({PROFILE_VERSION}); upgrade render2spike", path=p, field="version")
+        if int(meta.get("version", 0)) < PROFILE_VERSION:
+            raise ProfileError(f"profile version {meta.get('version')} is older than this reader's "
+                               f"({PROFILE_VERSION}, which adds 'dark' and 'dark_current_e'); rebuild or "
+                               "recalibrate the profile", path=p, field="version")
         missing = [nm for nm in MAP_NAMES if nm not in maps]
         if missing:
             raise ProfileError(f"missing maps: {', '.join(missing)}", path=p)
@@ -373,7 +435,7 @@ class SensorProfile:
                        threshold_e=meta["threshold_e"], interval_s=meta["interval_s"], clock_hz=meta["clock_hz"],
                        pixel_pitch_m=meta["pixel_pitch_m"], fill_factor=meta["fill_factor"],
                        raw_width=meta.get("raw_width"), qe=SpectralCurve.from_dict(meta["qe"]),
-                       reset=meta["reset"],
+                       reset=meta["reset"], dark=meta["dark"],
                        provenance=meta.get("provenance", {}), meta=meta.get("meta", {}), **maps)
         except KeyError as exc:
             raise ProfileError("missing required field", path=p, field=str(exc.args[0])) from exc
@@ -395,6 +457,7 @@ class SensorProfile:
             "reset": self.reset,
             "pixel_pitch_um": self.pixel_pitch_m * 1e6,
             "fill_factor": self.fill_factor,
+            "dark": self.dark,
             "dark_rate_mean_per_interval": float(self.dark_rate[~hm].mean()) if (~hm).any() else 0.0,
             "dark_rate_mean_hz": float(per_interval_to_hz(self.dark_rate[~hm].mean(), self.interval_s))
             if (~hm).any() else 0.0,
@@ -403,7 +466,28 @@ class SensorProfile:
             "prnu_gain_std": float(self.prnu_gain.std()),
             "refractory_s_mean": float(self.refractory_s.mean()),
             "qe_peak": float(self.qe.values.max()),
+            **self.dark_current_summary(),
         }
+
+    def dark_current_summary(self) -> dict:
+        """Statistics of ``dark_current_e`` over the non-hot pixels (empty in ``events`` mode).
+
+        ``dark_current_e_median``, ``dark_current_e_p01``, ``dark_current_e_p99`` [e- per interval]; and the
+        Hz-equivalent: the firing rate the dark current alone gives a pixel, ``d g / theta`` firings per interval
+        (the crossing reset's continuous rate without blind time; the read-out rate of a pixel in the dark is this
+        to within the blind time), in Hz (``dark_current_hz_equiv_*``).
+        """
+        if self.dark != "current":
+            return {}
+        hm = self.hot_mask
+        sel = ~hm if (~hm).any() else np.ones(self.shape, bool)
+        d = self.dark_current_e[sel].astype(np.float64)
+        hz = per_interval_to_hz(d * self.prnu_gain[sel] / self.threshold_e, self.interval_s)
+        out = {}
+        for tag, q in (("median", 50), ("p01", 1), ("p99", 99)):
+            out[f"dark_current_e_{tag}"] = float(np.percentile(d, q))
+            out[f"dark_current_hz_equiv_{tag}"] = float(np.percentile(hz, q))
+        return out
 
 
 def bundled_profiles() -> list[str]:

@@ -81,6 +81,10 @@ def register(sub) -> None:
                    help="impose the pixel's reset instead of deciding it from the flats")
     p.add_argument("--keep-threshold", action="store_true",
                    help="store the base profile's threshold (the photon-transfer estimate is still reported)")
+    p.add_argument("--dark-mode", choices=["events", "current"], default="events",
+                   help="how the profile models dark current: 'events' (default, Algorithm 2: dark events that fire "
+                        "the pixel, dark_rate) or 'current' (a charge integrated with the light, dark_current_e "
+                        "[e-/interval], from each pixel's dark ISI rate through the exact rate law)")
     add_overwrite(p, "replace an existing PROFILE (and its report)")
     p.set_defaults(func=run)
 
@@ -108,12 +112,17 @@ def run(args) -> int:
     prof, report = calibrate([Path(f) for f in args.dark], [Path(f) for f in args.flat], base,
                              hot_threshold=args.hot_threshold, name=args.name, height=args.height or base.height,
                              width=width, drop_columns=drop, reset=args.reset, flat_lux=args.flat_lux,
-                             estimate_threshold=not args.keep_threshold, progress=print, progress_bar=True)
+                             estimate_threshold=not args.keep_threshold, dark_mode=args.dark_mode, progress=print,
+                             progress_bar=True)
     out = prof.save(args.out)
     files = write_report(report, prof, out.with_name(out.stem + "_report"))
     n = report.numbers
     print(f"wrote {out}: mean dark rate {n['mean_dark_rate_hz']:.1f} Hz, {n['hot_pixels']} hot pixels, "
           f"PRNU std {n['prnu_std']:.4f} (median SE {n['prnu_se_median']:.4f}), reset {n['reset']}")
+    if n.get("dark_current_e_median") is not None:
+        print(f"dark current (charge): median {n['dark_current_e_median']:.3g} e-/interval, 1st-99th percentile "
+              f"{n['dark_current_e_p01']:.3g}-{n['dark_current_e_p99']:.3g}, median SE "
+              f"{n['dark_current_se_median']:.3g}")
     if n.get("threshold_e") is not None:
         print(f"threshold {n['threshold_e']:.0f} +- {n['threshold_se']:.0f} e-"
               + (" (not stored: --keep-threshold)" if args.keep_threshold else ""))

@@ -27,8 +27,9 @@ Hold a real recording against the spike models.
    |model - real| / combined standard error (~0.8 = indistinguishable).
 
 With --fit, the global dark rate (a scale of the profile's dark-rate map, 0
-included) and threshold theta of elssim (the profile's own reset) are fitted to
-the recording: a grid search minimising D over the ISI CV, lag-1 correlation and
+included; with --fit-dark-mode current, or a profile with dark = current, a scale
+of its dark-current map) and threshold theta of elssim (the profile's own reset)
+are fitted to the recording: a grid search minimising D over the ISI CV, lag-1 correlation and
 Fano factors on --fit-pixels random stationary pixels, repeated for --fit-seeds
 pixel draws (their spread is the uncertainty). The fitted profile is written to
 DIR/fitted_profile.npz (usable as `render2spike simulate --profile`) and the
@@ -77,6 +78,10 @@ def register(sub) -> None:
     p.add_argument("--fit", action="store_true",
                    help="fit the profile's dark rate and threshold to RECORDING (writes DIR/fitted_profile.npz and "
                         "adds the fitted elssim models to the report)")
+    p.add_argument("--fit-dark-mode", choices=["events", "current"], default=None,
+                   help="fit the dark term as dark events (a scale of the dark-rate map) or as a dark current (a "
+                        "scale of the dark-current map; a profile with dark events is first converted at the same "
+                        "dark firing rate, d = mu_DC theta / g). Default: the profile's own dark mode")
     p.add_argument("--fit-seeds", type=int, default=3, metavar="N",
                    help="independent pixel draws of the fit; their spread is its uncertainty (default 3)")
     p.add_argument("--fit-pixels", type=int, default=1500, metavar="N",
@@ -150,16 +155,21 @@ def run(args) -> int:
 
 def add_fit(result, spikes, base, profile, specs, out, args, say) -> None:
     """Fit dark rate and threshold, write DIR/fitted_profile.npz, add the fitted elssim models to ``result``."""
+    from sensor.analysis.fit import as_dark_mode
     from sensor.analysis.realism import add_fitted_models, fit_profile as fit, scaled_profile
-    say(f"fitting dark rate and threshold of elssim (reset {profile.reset}) to the recording")
+    mode = getattr(args, "fit_dark_mode", None) or profile.dark
+    say(f"fitting dark {'current' if mode == 'current' else 'rate'} and threshold of elssim (reset {profile.reset}) "
+        "to the recording")
     f = fit(spikes, profile, seed=args.seed, n_seeds=args.fit_seeds, n_pixels=args.fit_pixels,
-            segments=args.segments, alpha=args.alpha, progress=say)
-    say(f"fit: dark rate x{f.dark_scale:.3g} +- {f.dark_scale_sd:.2g}, threshold x{f.threshold_scale:.3g} +- "
+            segments=args.segments, alpha=args.alpha, dark_mode=mode, progress=say)
+    base = as_dark_mode(base, mode)
+    say(f"fit: dark {'current' if mode == 'current' else 'rate'} x{f.dark_scale:.3g} +- {f.dark_scale_sd:.2g}, threshold x{f.threshold_scale:.3g} +- "
         f"{f.threshold_scale_sd:.2g} (sd over {args.fit_seeds} draws) in {f.notes['seconds']:.1f} s")
     full = scaled_profile(base, f.dark_scale, f.threshold_scale, name=f"{base.name}-fitted")
     full = full.replace(provenance={**(base.provenance or {}), "fitted": {
         "by": "render2spike realism --fit", "recording": str(args.recording), "from_profile": base.name,
-        "dark_scale": f.dark_scale, "dark_scale_sd": f.dark_scale_sd, "threshold_scale": f.threshold_scale,
+        "dark_mode": mode, "dark_scale": f.dark_scale, "dark_scale_sd": f.dark_scale_sd,
+        "threshold_scale": f.threshold_scale,
         "threshold_scale_sd": f.threshold_scale_sd, "method": f.notes["method"]}})
     path = full.save(out / "fitted_profile.npz")
     add_fitted_models(result, spikes, profile, f, specs, seed=args.seed, segments=args.segments, alpha=args.alpha,

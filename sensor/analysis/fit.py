@@ -1,4 +1,8 @@
-"""Fitting the global dark rate and threshold of a profile to a real recording (elssim, its own reset)."""
+"""Fitting the global dark rate and threshold of a profile to a real recording (elssim, its own reset).
+
+The dark term is fitted in the profile's own dark mode (``profile.dark``) or in the one asked for
+(``dark_mode``): ``events`` scales the dark-event map ``dark_rate``; ``current`` scales the dark current
+``dark_current_e`` (see :func:`scaled_profile` and :func:`as_dark_mode`)."""
 
 from __future__ import annotations
 
@@ -30,25 +34,55 @@ class FitResult:
     threshold_scale_sd: float
     per_seed: list
     notes: dict = field(default_factory=dict)
+    #: the profile the scales apply to (``profile`` in the fitted dark mode, before scaling)
+    base_profile: SensorProfile | None = None
 
     def summary(self) -> dict:
         hm = self.profile.hot_mask
         return {"dark_scale": self.dark_scale, "dark_scale_sd": self.dark_scale_sd,
                 "threshold_scale": self.threshold_scale, "threshold_scale_sd": self.threshold_scale_sd,
-                "threshold_e": float(self.profile.threshold_e),
+                "threshold_e": float(self.profile.threshold_e), "dark": self.profile.dark,
                 "dark_rate_mean_per_interval": float(self.profile.dark_rate[~hm].mean()) if (~hm).any() else 0.0,
+                "dark_current_e_mean": float(self.profile.dark_current_e[~hm].mean()) if (~hm).any() else 0.0,
                 "per_seed": self.per_seed, **self.notes}
 
 
 def scaled_profile(profile: SensorProfile, dark_scale: float, threshold_scale: float,
                    name: str | None = None) -> SensorProfile:
-    """``profile`` with its dark-rate map multiplied by ``dark_scale`` and its threshold [e-] by ``threshold_scale``.
+    """``profile`` with its dark firing rate multiplied by ``dark_scale`` and its threshold [e-] by ``threshold_scale``.
 
-    The hot-pixel charge (``hot_mu``, ``hot_sigma``) is stored in threshold units, so it scales with theta.
+    ``dark == "events"``: the dark-rate map times ``dark_scale``. ``dark == "current"``: the dark current [e-]
+    times ``dark_scale * threshold_scale``, so that ``dark_scale`` multiplies the dark firing rate ``d / theta``
+    in both modes (a dark current fixed in e- would fire 8x less at 8x the threshold). The hot-pixel charge
+    (``hot_mu``, ``hot_sigma``) is stored in threshold units, so it scales with theta.
     """
-    return profile.replace(dark_rate=(profile.dark_rate * float(dark_scale)).astype(profile.dark_rate.dtype),
-                           threshold_e=float(profile.threshold_e) * float(threshold_scale),
-                           name=name or profile.name)
+    ds, ts = float(dark_scale), float(threshold_scale)
+    if profile.dark == "current":
+        dark = {"dark_current_e": (profile.dark_current_e * (ds * ts)).astype(np.float32)}
+    else:
+        dark = {"dark_rate": (profile.dark_rate * ds).astype(profile.dark_rate.dtype)}
+    return profile.replace(threshold_e=float(profile.threshold_e) * ts, name=name or profile.name, **dark)
+
+
+def as_dark_mode(profile: SensorProfile, mode: str | None) -> SensorProfile:
+    """``profile`` with dark current as ``mode`` (``"events"`` or ``"current"``; None: unchanged), same dark firing rate.
+
+    events -> current: ``d = mu_DC theta / g`` [e-/interval] (a pixel that fires every theta / g dark electrons
+    fires mu_DC times per interval on average, as its dark events did); current -> events: the inverse.
+    """
+    if mode is None or mode == profile.dark:
+        return profile
+    g = profile.prnu_gain.astype(np.float64)
+    zero = np.zeros(profile.shape, np.float32)
+    if mode == "current":
+        d = profile.dark_rate.astype(np.float64) * profile.threshold_e / g
+        return profile.replace(dark="current", dark_rate=zero, dark_current_e=d.astype(np.float32),
+                               name=f"{profile.name}-dark-current")
+    if mode == "events":
+        mu = profile.dark_current_e.astype(np.float64) * g / profile.threshold_e
+        return profile.replace(dark="events", dark_current_e=zero, dark_rate=mu.astype(np.float32),
+                               name=f"{profile.name}-dark-events")
+    raise InputError(f"unknown dark mode '{mode}'; valid choices: events, current", field="dark_mode")
 
 
 def _pixel_profile(profile: SensorProfile, idx) -> SensorProfile:
@@ -73,7 +107,7 @@ def _parabola_min(xs, ds, i):
 
 def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int = 3, n_pixels: int = 1500,
                 dark_scales=DARK_SCALES, threshold_scales=THRESHOLD_SCALES, segments: int = 4, alpha: float = 0.01,
-                max_warmup: int = 4000, progress=None, **stat_kw) -> FitResult:
+                max_warmup: int = 4000, dark_mode: str | None = None, progress=None, **stat_kw) -> FitResult:
     """Fit the global dark rate and threshold of ``profile`` (elssim, its own reset) to a real recording.
 
     The recording fixes each pixel's light only through its rate, so what it can
@@ -97,7 +131,12 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     uncertainty their standard deviation (the spread of one draw's estimate,
     which includes the choice of pixels).
 
-    Returns a :class:`FitResult` whose ``profile`` is ``profile`` scaled
+    ``dark_mode``: fit the dark term as dark events (``"events"``) or as a dark current
+    (``"current"``); None (default) keeps the profile's own. A profile of the other mode is first
+    converted at the same dark firing rate (:func:`as_dark_mode`); the dark scale multiplies that
+    rate in both modes (:func:`scaled_profile`).
+
+    Returns a :class:`FitResult` whose ``profile`` is ``profile`` (in the fitted dark mode) scaled
     (:func:`scaled_profile`) by the mean scales.
     """
     import time
@@ -105,6 +144,7 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     from sensor.calibration.vidar import light_for_rate
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
+    profile = as_dark_mode(profile, dark_mode)
     s, (T, H, W) = checked_recording(spikes, profile)
     if n_seeds < 1:
         raise InputError(f"n_seeds must be >= 1; got {n_seeds}", field="n_seeds")
@@ -163,13 +203,16 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     d_sd = float(dv.std(ddof=1)) if dv.size > 1 else float("nan")
     t_sd = float(t_mean * tv.std(ddof=1)) if tv.size > 1 else float("nan")
     fitted = scaled_profile(profile, d_mean, t_mean, name=f"{profile.name}-fitted")
-    notes = {"method": ("grid search of the dark-rate scale (grid " + ", ".join(f"{x:g}" for x in dsc)
+    what = "dark-current scale (of the dark firing rate d / theta)" if profile.dark == "current" else \
+        "dark-rate scale"
+    notes = {"method": (f"grid search of the {what} (grid " + ", ".join(f"{x:g}" for x in dsc)
                         + ") and threshold scale (grid " + ", ".join(f"{x:g}" for x in tsc) + ", geometric) "
                         f"minimising D over {', '.join(FIT_STATISTICS)} of elssim (reset {profile.reset}) "
                         f"on {min(n_pixels, cand.size)} random stationary pixels, refined by a parabola; mean "
                         f"over {n_seeds} pixel draws / simulation seeds, uncertainty = their standard deviation "
                         "(threshold: geometric mean, sd of the log times the mean)"),
-             "reset": profile.reset, "candidate_pixels": int(cand.size), "disjoint_draws": bool(disjoint),
+             "reset": profile.reset, "dark_mode": profile.dark, "candidate_pixels": int(cand.size),
+             "disjoint_draws": bool(disjoint),
              "seconds": time.perf_counter() - t0,
              "base_threshold_e": float(profile.threshold_e)}
-    return FitResult(fitted, d_mean, d_sd, t_mean, t_sd, per_seed, notes)
+    return FitResult(fitted, d_mean, d_sd, t_mean, t_sd, per_seed, notes, base_profile=profile)

@@ -26,8 +26,10 @@ def rate_light_curve(profile: SensorProfile, model: str, *, seed: int = 0, n_lev
     """
     from sensor.simulator import simulate
     kw = {"reset": profile.reset}
+    # dark events at the median rate; a dark current is not put in the curve (it is per pixel: estimate_light
+    # inverts to lambda + d and takes each pixel's d off)
     uni = SensorProfile.synthetic(n_levels, n_pixels, threshold_e=profile.threshold_e,
-                                  dark_rate=float(np.median(profile.dark_rate)),
+                                  dark_rate=float(np.median(profile.dark_rate)) if profile.dark == "events" else 0.0,
                                   refractory_s=float(np.median(profile.refractory_s)), interval_s=profile.interval_s,
                                   clock_hz=profile.clock_hz, name="rate-light-curve", **kw)
     lam = profile.threshold_e * np.concatenate([[0.0], np.geomspace(1e-3, 4.0, n_levels - 1)])
@@ -58,16 +60,24 @@ def estimate_light(rate, profile: SensorProfile, model: str, *, seed: int = 0, c
       divided by the pixel's gain (it needs ~theta/g photoelectrons). Per-pixel
       dark-rate differences are not removed (the curve has the median dark rate).
 
+    With ``dark == "current"`` (every model but ``ideal``) the pixel's rate comes from ``lambda + d``: both
+    inversions run without dark events and the pixel's dark current ``d`` is taken off (clipped at 0).
+
     Returns (lambda (H, W) float32, description str).
     """
     from sensor.models.effects import count_threshold, dark_event_probability
     from sensor.analysis.theory import invert_renewal_rate
     rate = np.asarray(rate, np.float64)
+    current = profile.dark == "current" and _uses_gain(model)
+    d = profile.dark_current_e.astype(np.float64)
+    dc_note = "; minus the pixel's dark current (dark = current)" if current else ""
     if model == "elssim" and profile.reset == "interval":
         k = count_threshold(profile.threshold_e, profile.prnu_gain)
         lam = invert_renewal_rate(rate, k, profile.refractory_fraction, dark_event_probability(profile.dark_rate))
+        if current:
+            lam = np.maximum(lam - d, 0.0)
         return lam.astype(np.float32), ("exact renewal inversion per pixel (k = ceil(theta/g), refractory, dark "
-                                        "probability; sensor.analysis.theory.invert_renewal_rate)")
+                                        "probability; sensor.analysis.theory.invert_renewal_rate)" + dc_note)
     lam_c, r_c = rate_light_curve(profile, model, seed=seed, n_intervals=curve_intervals)
     # strictly increasing support for the interpolation (plateaus: take the first light level of each rate)
     r_u, first = np.unique(r_c, return_index=True)
@@ -75,10 +85,12 @@ def estimate_light(rate, profile: SensorProfile, model: str, *, seed: int = 0, c
     lam = np.where(rate <= r_u[0], 0.0, lam)
     if _uses_gain(model):
         lam = lam / np.asarray(profile.prnu_gain, np.float64)
+    if current:
+        lam = np.maximum(lam - d, 0.0)
     return lam.astype(np.float32), (f"rate-light curve of the model measured by simulation ({lam_c.size} levels x 16 "
                                     f"pixels x {curve_intervals} intervals, median dark and refractory, no PRNU), "
                                     "inverted by interpolation" + (", divided by the pixel's PRNU gain"
-                                                                   if _uses_gain(model) else ""))
+                                                                   if _uses_gain(model) else "") + dc_note)
 
 
 def simulate_after_warmup(lam, T: int, warmup: int, profile, model: str, seed: int, chunk: int = 1024):

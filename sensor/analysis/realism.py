@@ -99,6 +99,8 @@ def add_fitted_models(result: RealismResult, spikes, profile: SensorProfile, fit
     """
     specs = parse_models(",".join(m.label if isinstance(m, ModelSpec) else m for m in models))
     elssim = [s for s in specs if s.name == "elssim"]
+    from sensor.analysis.fit import as_dark_mode
+    profile = as_dark_mode(profile, fit.base_profile.dark if fit.base_profile is not None else None)
     fitted = scaled_profile(profile, fit.dark_scale, fit.threshold_scale, name=f"{profile.name}-fitted")
     label = {s.label: f"{s.label} (fitted)" for s in elssim}
     if elssim:

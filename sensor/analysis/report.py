@@ -127,8 +127,12 @@ def markdown(result: RealismResult, recording: str = "") -> str:
                   + "; ".join(f"`{m}`: {', '.join(v)}" for m, v in undefined.items()) + "."]
     fit = result.notes.get("fit")
     if fit:
-        lines += ["", f"**Fit.** dark-rate map x{fit['dark_scale']:.3g} +- {fit['dark_scale_sd']:.2g} (mean "
-                  f"{fit['dark_rate_mean_per_interval']:.3g} dark events per interval), threshold "
+        dark_txt = (f"dark-current map x{fit['dark_scale']:.3g} +- {fit['dark_scale_sd']:.2g} of its dark firing "
+                    f"rate (mean {fit.get('dark_current_e_mean', 0.0):.3g} e- per interval)"
+                    if fit.get("dark") == "current" else
+                    f"dark-rate map x{fit['dark_scale']:.3g} +- {fit['dark_scale_sd']:.2g} (mean "
+                    f"{fit['dark_rate_mean_per_interval']:.3g} dark events per interval)")
+        lines += ["", f"**Fit.** {dark_txt}, threshold "
                   f"x{fit['threshold_scale']:.3g} +- {fit['threshold_scale_sd']:.2g} (theta = {fit['threshold_e']:.4g} "
                   f"e-); +- = standard deviation over {len(fit['per_seed'])} pixel draws. " + fit["method"] + ". "
                   "Distance before -> after: " + "; ".join(f"`{m}` {fit['before_D'][m]:.2f} -> {fit['after_D'][m]:.2f}"

@@ -6,6 +6,16 @@ Estimators (see ``docs/sensor.md`` for the derivations and departures):
   spike fraction ``p`` estimates the per-interval dark-event probability, so
   ``mu_DC = -ln(1 - p)`` (the exact inverse of ``p = 1 - exp(-mu_DC)``; the
   paper uses ``p`` itself, equal to first order).
+* **Dark current as charge** (``dark_mode="current"``, ``--dark-mode current``): each pixel's
+  dark read-out rate is its mean dark ISI inverted (``1 / mean``; the mean ISI is the span from
+  the first to the last spike of each recording over the ISIs in between, pooled), and the
+  dark current ``d`` [e-/interval] is the light whose read-out rate under the calibrated reset,
+  threshold, gain and refractory time is that rate (the exact laws of
+  :mod:`sensor.calibration.flatfield` with no dark events: ``d = k x``, ``x`` the inverted rate
+  in thresholds per interval, ``k = theta / g``). Its standard error combines the mean ISI's
+  (``Var(sum of N ISIs) = N Var(U)`` with ``Var(U)`` of the model at the estimate, plus the
+  read-out's bounded 1/6 per recording under the crossing reset) with the gain's and the
+  threshold's. Flats are inverted at ``lambda + d``: the PRNU fit uses the light alone.
 * **Hot pixels** (Eqs. 3-4): a pixel is hot when its pooled dark spike fraction
   exceeds the population median by ``hot_threshold`` spikes per interval
   (theta_HT; the paper thresholds the first recording only). A hot pixel's
@@ -68,6 +78,8 @@ class CalibrationReport:
     prnu_se: np.ndarray | None = None
     sensitivity: np.ndarray | None = None
     sensitivity_se: np.ndarray | None = None
+    #: standard error of ``dark_current_e`` [e-/interval] per pixel (``dark_mode="current"``; NaN on hot pixels)
+    dark_current_se: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {"n_dark_recordings": self.n_dark, "n_flat_recordings": self.n_flat,
@@ -122,6 +134,62 @@ def hot_pixel_se(isis, mu, sigma, p_dark, moments):
     return float(np.sqrt(c[0, 0])), float(np.sqrt(c[1, 1]))
 
 
+def dark_isi_spans(recordings):
+    """Per pixel: (ISIs N, summed span [intervals] from first to last spike, recordings with an ISI) over recordings.
+
+    ``recordings``: iterable of bool (T, H, W) arrays. The mean dark ISI is ``span / N``.
+    """
+    n_isi = span = n_rec = None
+    for s in recordings:
+        T = s.shape[0]
+        cnt = s.sum(axis=0)
+        first = np.argmax(s, axis=0)
+        last = T - 1 - np.argmax(s[::-1], axis=0)
+        has = cnt >= 2
+        if n_isi is None:
+            n_isi, span, n_rec = (np.zeros(s.shape[1:], np.int64) for _ in range(3))
+        n_isi += np.where(has, cnt - 1, 0)
+        span += np.where(has, last - first, 0)
+        n_rec += has
+    return n_isi, span, n_rec
+
+
+def dark_current_from_isis(n_isi, span, n_rec, k, f, reset):
+    """Dark current [e-/interval] from the dark ISIs of each pixel at ``k`` electrons to fire, and its
+    standard error from the ISIs alone: ``(d, se)``, float64 arrays (NaN / inf where a pixel has no ISI).
+
+    The read-out rate is ``N / span``; ``d = k x`` with ``x`` the light [thresholds per interval] that gives
+    this rate under ``reset`` (no dark events). The sum of N read-out ISIs has variance ``N Var(U)`` (the
+    model's, at the estimate) plus, under the crossing reset, the read-out's quantisation (at most 1/4, about
+    1/6, per recording); the delta method carries it to ``d``.
+    """
+    from sensor.calibration import theory as ct
+    from sensor.calibration.flatfield import invert_rate
+    n = n_isi.astype(np.float64)
+    ok = n > 0
+    rate = np.where(ok, n / np.where(span > 0, span, 1), 0.0)
+    kk = np.broadcast_to(np.asarray(k, np.float64), rate.shape)
+    ff = np.broadcast_to(np.asarray(f, np.float64), rate.shape)
+    zero = np.zeros(rate.shape)
+    x = invert_rate(reset, rate, kk, zero, ff)
+    d = x * kk
+    lam = np.maximum(d, 1e-12)
+    if reset == "crossing":
+        var_u = ct.crossing_readout_unit(lam, kk, zero, ff)[1]
+        extra = n_rec / 6.0
+    else:
+        var_u = ct.interval_isi_moments(lam, kk, zero, ff)[1]
+        extra = 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var_span = n * var_u + extra
+        var_rate = np.where(ok, var_span * rate ** 4 / np.where(ok, n, 1) ** 2, np.inf)  # rate = N / span
+        e = np.maximum(1e-3 * rate, 1e-9)
+        dd = (invert_rate(reset, rate + e, kk, zero, ff) - invert_rate(reset, np.maximum(rate - e, 0), kk, zero, ff)) \
+            * kk / (2 * e)
+    se = np.where(ok, np.abs(dd) * np.sqrt(var_rate), np.inf)
+    return np.where(ok, d, np.nan), se, rate, var_rate, dd
+
+
 def _isi_stats(trains: list[np.ndarray]):
     """Pooled ISIs (differences of consecutive spike indices) from several spike-index arrays."""
     d = [np.diff(t) for t in trains if t.size >= 2]
@@ -131,7 +199,7 @@ def _isi_stats(trains: list[np.ndarray]):
 def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_threshold: float = DEFAULT_HOT_THRESHOLD,
               name: str | None = None, height: int | None = None, width: int | None = None, drop_columns: int = 0,
               min_hot_isis: int = 20, reset: str | None = None, flat_lux=None, estimate_threshold: bool = True,
-              progress=None, progress_bar: bool = False):
+              dark_mode: str = "events", progress=None, progress_bar: bool = False):
     """Estimate a :class:`SensorProfile` from dark and flat-field recordings.
 
     Parameters
@@ -164,6 +232,13 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     estimate_threshold : bool
         Store the photon-transfer threshold in the profile (default); False keeps
         the base profile's threshold (the estimate is still reported).
+    dark_mode : "events" or "current"
+        How the written profile models dark current (its ``dark``): ``"events"``
+        (default) estimates ``dark_rate`` (mu_DC of dark events); ``"current"``
+        estimates ``dark_current_e`` [e-/interval], a charge integrated with the
+        light, by inverting each pixel's dark ISI rate through the exact rate law of
+        the calibrated reset and threshold (numbers ``dark_current_e_median``,
+        ``dark_current_se_median``; map ``dark_current_se``).
     progress : callable, optional
         ``progress(message)`` called as work advances.
     progress_bar : bool
@@ -182,6 +257,9 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         ``sensitivity_se``.
     """
     say = progress or (lambda msg: None)
+    if dark_mode not in ("events", "current"):
+        raise CalibrationError(f"unknown dark mode '{dark_mode}'; valid choices: events, current", field="--dark-mode")
+    current = dark_mode == "current"
     base = base if isinstance(base, SensorProfile) else SensorProfile.load(base)
     if not dark:
         raise CalibrationError("no dark recordings given (need at least 1; the paper uses 20)", field="--dark")
@@ -214,6 +292,17 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     hot = (p_dark - median_p) >= hot_threshold
     p_normal = np.where(hot, median_p, p_dark)
     mu_dc = -np.log1p(-np.clip(p_normal, 0.0, 1.0 - 1e-12))
+    if current:  # dark ISIs per pixel: the mean ISI pins the dark current
+        n_isi, span, n_rec = dark_isi_spans(
+            x if isinstance(x, np.ndarray) else _as_recording(x, H, Wd, drop_columns, "dark", i)
+            for i, x in enumerate(dark_recs))
+        f_pilot = base.refractory_fraction.astype(np.float64)
+        # pilot rate variance (base threshold, gain 1) for the PRNU fit's error budget
+        _, _, rate_dark, var_rate_dark, _ = dark_current_from_isis(n_isi, span, n_rec, base.threshold_e, f_pilot,
+                                                                reset or base.reset)
+        med_rate = float(np.median(rate_dark[~hot])) if (~hot).any() else 0.0
+        rate_dark = np.where(hot, med_rate, rate_dark)
+        mu_dc = np.zeros(shape)
 
     # ---- flat fields: reset, effective light per pixel, PRNU, threshold, sensitivity
     normal = ~hot
@@ -230,8 +319,33 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     flat_ints = [lv.T for lv in levels]
     # binomial variance of mu_DC = -ln(1 - p): Var(p) / (1 - p)^2
     var_mu = np.clip(p_normal, 1e-12, None) / (n_int * np.clip(1 - p_normal, 1e-12, None))
-    fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
-                    median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    if current:
+        fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
+                        median_p, reset=reset, flat_lux=flat_lux, say=say, dark_current_rate=rate_dark,
+                        dark_current_rate_var=np.where(np.isfinite(var_rate_dark), var_rate_dark, 0.0))
+    else:
+        fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
+                        median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    theta_cal = float(fit["threshold_e"]) if fit.get("threshold_e") is not None and estimate_threshold else \
+        float(base.threshold_e)
+    gain_fit = np.clip(np.where(hot, 1.0, fit["gain"]), 0.05, None)
+    if current:
+        k_cal = theta_cal / gain_fit
+        d_e, _, _, var_r, dd_dr = dark_current_from_isis(n_isi, span, n_rec, k_cal, base.refractory_fraction,
+                                                          fit["reset"])
+        d_med = float(np.nanmedian(d_e[normal])) if normal.any() else 0.0
+        d_e = np.where(hot, d_med, np.nan_to_num(d_e))
+        # d = x_dark(rate) theta / g: the dark rate's error moves d directly and through the gain (the flats'
+        # light is the total minus the dark share, so dg / d rate = gain_dark_coeff); the flats' own gain error
+        # and, when estimated here, the threshold's (common to all pixels) add
+        coeff = np.where(hot, 0.0, fit.get("gain_dark_coeff", np.zeros(shape)))
+        se_flat = np.where(hot, 0.0, fit.get("gain_se_flat", fit["gain_se"]))
+        var_d = var_r * (dd_dr - d_e * coeff / gain_fit) ** 2 + (d_e * se_flat / gain_fit) ** 2
+        if fit.get("threshold_e") is not None and estimate_threshold and fit.get("threshold_se"):
+            var_d = var_d + (d_e * float(fit["threshold_se"]) / theta_cal) ** 2
+        d_se = np.sqrt(var_d)
+        d_se = np.where(hot, np.nan, d_se)
+        say(f"dark current: median {d_med:.3g} e-/interval ({fit['reset']} reset, theta {theta_cal:.0f} e-)")
     # ---- hot pixels: ISI moments from the dark recordings
     hot_idx = np.flatnonzero(hot)
     hot_mu = np.zeros(shape, np.float64)
@@ -246,6 +360,10 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     else:
         def moments(m_, s_, p_, f_):
             return hot_pixel_isi_moments(m_, s_, p_)
+    # events: a hot pixel's ordinary dark events come at the median rate. current: its dark current is the
+    # median d, a charge of d / theta per interval (gain 1), fitted as part of the hot charge and taken off after
+    # (its own shot noise is neglected beside the hot charge's spread)
+    p_hot_dark, hot_shift = (0.0, d_med / theta_cal) if current else (median_p, 0.0)
     if hot_idx.size:
         trains = {j: [] for j in hot_idx}
         for i, x in enumerate(dark_recs):
@@ -262,17 +380,17 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
             if isi.size >= 2:
                 m, v = float(isi.mean()), float(isi.var(ddof=1))
                 if isi.size >= min_hot_isis:
-                    mu, sg = fit_hot_pixel(m, v, p_dark=median_p, moments=mom)
-                    hot_mu_se[r, cc], hot_sigma_se[r, cc] = hot_pixel_se(isi, mu, sg, median_p, mom)
+                    mu, sg = fit_hot_pixel(m, v, p_dark=p_hot_dark, moments=mom)
+                    hot_mu_se[r, cc], hot_sigma_se[r, cc] = hot_pixel_se(isi, mu, sg, p_hot_dark, mom)
                 else:
-                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=median_p, moments=mom)[0], 0.0
+                    mu, sg = fit_hot_pixel(m, max(v, 1e-6), p_dark=p_hot_dark, moments=mom)[0], 0.0
             else:  # too few spikes for an ISI: use the excess rate
-                mu, sg = float(p_dark.reshape(-1)[j] - median_p), 0.0
+                mu, sg = float(p_dark.reshape(-1)[j] - median_p) + hot_shift, 0.0
+            mu = max(mu - hot_shift, 0.0)
             hot_mu[r, cc], hot_sigma[r, cc] = mu, sg
         say(f"hot pixels: {hot_idx.size} ({fit['reset']} reset)")
 
-    gain = np.where(hot, 1.0, fit["gain"])
-    gain = np.clip(gain, 0.05, None)
+    gain = gain_fit
     use = np.array(fit["level_used"])
 
     changes = dict(
@@ -293,12 +411,23 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         changes["threshold_e"] = float(fit["threshold_e"])
         changes["provenance"]["threshold_e"] = (f"calibrated: photon transfer from flat ISI variances "
                                                 f"({fit['threshold_e']:.0f} +- {fit['threshold_se']:.0f} e-)")
+    if current:
+        changes.update(dark="current", dark_rate=np.zeros(shape, np.float32), dark_current_e=d_e.astype(np.float32))
+        changes["provenance"].pop("dark_rate", None)
+        changes["provenance"]["dark"] = "current: calibrated with --dark-mode current"
+        changes["provenance"]["dark_current_e"] = (
+            f"calibrated: each pixel's mean dark ISI over {len(dark)} recordings ({n_int} intervals) inverted "
+            f"through the exact rate law ({fit['reset']} reset, threshold {theta_cal:.0f} e-, calibrated gain, no "
+            "dark events); hot pixels get the median")
+    else:
+        changes.update(dark="events", dark_current_e=np.zeros(shape, np.float32))
     changes["reset"] = fit["reset"]
     changes["provenance"]["reset"] = (
         f"calibrated: lag-1 ISI correlation test, decision {fit['reset']} (confidence "
         f"{fit['reset_confidence']:.4f})" if reset is None else f"imposed by the user ({reset})")
     prof = base.replace(**changes)
     numbers = {
+        "dark_mode": dark_mode,
         "median_dark_fraction": median_p,
         "mean_dark_rate_hz": float(per_interval_to_hz(mu_dc[normal].mean(), base.interval_s)),
         "hot_pixels": int(hot.sum()),
@@ -313,12 +442,19 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         "prnu_levels_used": [bool(u) for u in use],
         "flat_mean_spike_rate": [float(lv.rate[normal].mean()) for lv in levels],
         **{k: v for k, v in fit.items() if k not in ("gain", "gain_se", "x", "sensitivity_map",
-                                                       "sensitivity_se_map")},
+                                                       "sensitivity_se_map", "dark_x",
+                                                       "gain_se_flat", "gain_dark_coeff")},
     }
+    if current:
+        numbers.update(dark_current_e_median=d_med,
+                       dark_current_e_p01=float(np.percentile(d_e[normal], 1)) if normal.any() else 0.0,
+                       dark_current_e_p99=float(np.percentile(d_e[normal], 99)) if normal.any() else 0.0,
+                       dark_current_se_median=float(np.nanmedian(d_se[normal])) if normal.any() else 0.0)
     report = CalibrationReport(n_dark=len(dark), n_flat=len(flat), dark_intervals=n_int, flat_intervals=flat_ints,
                                hot_threshold=hot_threshold, numbers=numbers, dark_fraction=p_dark,
                                flat_levels_e=[float(v) for v in fit["level_light_e"]], prnu_se=fit["gain_se"],
-                               sensitivity=fit.get("sensitivity_map"), sensitivity_se=fit.get("sensitivity_se_map"))
+                               sensitivity=fit.get("sensitivity_map"), sensitivity_se=fit.get("sensitivity_se_map"),
+                               dark_current_se=d_se if current else None)
     return prof, report
 
 
@@ -342,13 +478,17 @@ def write_report(report: CalibrationReport, profile: SensorProfile, out_stem) ->
     write_json_atomic(jpath, {"profile": profile.name, **report.to_dict(), "provenance": provenance()})
     n = report.numbers
     fig, ax = plt.subplots(3, 3, figsize=(15, 12))
-    hz = per_interval_to_hz(profile.dark_rate, profile.interval_s)
+    if profile.dark == "current":  # the Hz-equivalent of the dark current (d g / theta firings per interval)
+        hz = per_interval_to_hz(profile.dark_current_e * profile.prnu_gain / profile.threshold_e, profile.interval_s)
+    else:
+        hz = per_interval_to_hz(profile.dark_rate, profile.interval_s)
     normal = ~profile.hot_mask
     vals = hz[normal]
     bins = np.geomspace(max(vals[vals > 0].min() if (vals > 0).any() else 1e-1, 1e-1), max(vals.max(), 1.0), 60)
     ax[0, 0].hist(vals[vals > 0], bins=bins, color="0.3")
     ax[0, 0].set_xscale("log")
-    ax[0, 0].set_xlabel("dark rate mu_DC / T_r [Hz]")
+    ax[0, 0].set_xlabel("dark current d g / theta / T_r [Hz-equivalent]" if profile.dark == "current"
+                        else "dark rate mu_DC / T_r [Hz]")
     ax[0, 0].set_ylabel("pixels")
     ax[0, 0].set_title(f"dark current (mean {vals.mean():.1f} Hz)")
     ax[0, 1].imshow(profile.hot_mask, cmap="gray_r", interpolation="nearest")

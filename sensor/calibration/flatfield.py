@@ -517,11 +517,18 @@ def _threshold(reset, levels, normal, x, gain, mu, f, theta, informative, say):
 
 # -------------------------------------------------------------------------------------------------- driver
 def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None, reset=None, flat_lux=None,
-              say=lambda m: None, passes: int = 2):
+              say=lambda m: None, passes: int = 2, dark_current_rate=None, dark_current_rate_var=None):
     """Reset, per-pixel light, PRNU gain, threshold and (with ``flat_lux``) sensitivity from flat levels.
 
     ``reset``: None to decide it from the data, or ``"interval"`` / ``"crossing"``
     to impose it. Returns a dict of maps and numbers (see :func:`sensor.calibration.estimate.calibrate`).
+
+    Dark current as charge (``dark == "current"``): pass ``mu_dc`` zero and ``dark_current_rate``, each pixel's
+    dark read-out rate [spikes/interval] (with its variance ``dark_current_rate_var``). A flat's rate then
+    comes from ``lambda + d``: the reset test and the threshold use the inverted total ``(lambda + d) / k``,
+    while the PRNU fit and the sensitivity use the light alone, the total minus the dark rate inverted through
+    the same law at the same ``k`` (``x_dark = d / k``, returned as ``dark_x``; its error is shared by the
+    pixel's levels and enters the gain's standard error).
     """
     shape = normal.shape
     nf = normal.reshape(-1)
@@ -541,6 +548,15 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     decided = reset
     out = {}
     thr = None
+    dcr = None if dark_current_rate is None else np.broadcast_to(dark_current_rate, shape).reshape(-1)
+
+    def minus_dark(x, reset_, k):
+        """The light alone [thresholds per interval]: total minus the dark current's share (current mode)."""
+        if dcr is None:
+            return x, None
+        xd = invert_rate(reset_, dcr, k, np.zeros_like(k), f)
+        return x - xd[None, :], xd
+
     for it in range(passes):
         r_use = decided or "crossing"  # the first pass needs some relation; the reset test does not depend on it
         k = theta / gain
@@ -551,7 +567,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
             if signal[l]:
                 var_x[l], count_sd[l], _ = light_variance(r_use, np.maximum(x[l], 1e-9), k, mu, f, levels[l].T)
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
-        gain, gain_se, X = fit_gain(x, var_x, nf)
+        gain, gain_se, X = fit_gain(minus_dark(x, r_use, k)[0], var_x, nf)
         if reset is None and it == 0:
             rt = decide_reset(levels, nf, list(x), theta, gain, mu, f)
             out.update(rt)
@@ -575,7 +591,27 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
                                                               levels[l].T, rates[l])
     informative = count_sd >= MIN_COUNT_SD
     var_x = np.where(informative, var_x, np.inf)
+    x_tot = x
+    x, x_dark = minus_dark(x, decided, k)
+    if x_dark is not None:
+        # the dark share's error, shared by the pixel's levels: dx / d(rate_dark) = -dx_dark / d(rate_dark)
+        if dark_current_rate_var is not None:
+            e = np.maximum(1e-4 * dcr, 1e-12)
+            dxd = (invert_rate(decided, dcr + e, k, np.zeros_like(k), f)
+                   - invert_rate(decided, np.maximum(dcr - e, 0.0), k, np.zeros_like(k), f)) / (2 * e)
+            dx_dmu = np.broadcast_to(-dxd, x.shape)
+            var_mu = np.broadcast_to(dark_current_rate_var, shape).reshape(-1)
+        else:
+            dx_dmu = var_mu = None
     gain, gain_se, X = fit_gain(x, var_x, nf, dx_dmu, var_mu)
+    if x_dark is not None and dx_dmu is not None:
+        # for the dark current's error budget: the gain's error from the flats alone, and dg / d(dark rate)
+        _, se_flat, _ = fit_gain(x, var_x, nf)
+        wg = np.where(np.isfinite(var_x) & (var_x > 0), 1.0 / np.where(var_x > 0, var_x, 1.0), 0.0)
+        wg[:, ~nf] = 0.0
+        info_g = (wg * X[:, None] ** 2).sum(axis=0)
+        coeff = (wg * X[:, None] * dx_dmu).sum(axis=0) / np.where(info_g > 0, info_g, 1.0)
+        out.update(gain_se_flat=se_flat.reshape(shape), gain_dark_coeff=coeff.reshape(shape))
     w = np.where(np.isfinite(var_x), 1.0 / np.where(np.isfinite(var_x), var_x, 1), 0.0)
     w[:, ~nf] = 0
     info = (w * X[:, None] ** 2)[:, nf].sum(axis=1)
@@ -602,8 +638,10 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     if not out["prnu_enough"]:
         say(f"warning: the flats are not enough for the PRNU map: median standard error {med_se:.4f} against a "
             f"spread of {g_spread:.4f}; record longer flats at levels where the read-out is not deterministic")
+    if x_dark is not None:
+        out["dark_x"] = x_dark.reshape(shape)
     if thr is None and reset is not None:
-        thr = _threshold(decided, levels, normal, list(x), gain, mu, f, theta, informative, say)
+        thr = _threshold(decided, levels, normal, list(x_tot), gain, mu, f, theta, informative, say)
     if thr is not None:
         out.update(thr)
     if flat_lux is not None:

@@ -61,7 +61,11 @@ PROVENANCE = {
              "(5-9 ISIs per pixel, where the moving object adds positive correlation) real +0.02 +- 0.01, crossing "
              "-0.07, interval 0.00; at 40-100 nothing is resolved. Independently, issue 8 reports -0.51/-0.49/-0.48 "
              "(mean ISI 3-6/6-10/10-20) on a 250 x 400 outdoor Vidar recording against -0.02 for the interval "
-             "reset. A profile version-1 file (no reset field) loads as 'interval'.",
+             "reset.",
+    "dark": "events (Algorithm 2 as published: dark_rate dark events per interval, each fires the pixel). This "
+            "profile keeps the paper's dark events; dark='current' (dark electrons per interval integrated with the "
+            "light) is the alternative, with no calibrated map here.",
+    "dark_current_e": "zero: this profile's dark current is the dark_rate map of dark events (dark='events').",
 }
 
 
@@ -155,14 +159,19 @@ def light_for_rate(rate, profile: SensorProfile) -> np.ndarray:
 
     The exact inversion of the read-out rate for the profile's reset (interval: renewal mean ISI; crossing: the
     read-out unit of :mod:`sensor.calibration.theory`), with each pixel's k = ceil(theta / g), dark rate and refractory
-    time (:func:`sensor.calibration.flatfield.invert_rate`). Rates at or below the dark floor give 0.
+    time (:func:`sensor.calibration.flatfield.invert_rate`). Rates at or below the dark floor give 0. With
+    ``dark == "current"`` the inversion gives ``lambda + d`` (no dark events) and the pixel's dark current is
+    taken off.
     """
     from sensor.models.effects import count_threshold
     from sensor.calibration.flatfield import invert_rate
     k = count_threshold(profile.threshold_e, profile.prnu_gain).astype(np.float64)
     x = invert_rate(profile.reset, np.asarray(rate, np.float64), k, profile.dark_rate.astype(np.float64),
                     profile.refractory_fraction.astype(np.float64))
-    return np.nan_to_num(np.asarray(x) * k, nan=0.0)
+    lam = np.nan_to_num(np.asarray(x) * k, nan=0.0)
+    if profile.dark == "current":  # the rate comes from lambda + d: the light is the rest (0 at the dark floor)
+        lam = np.maximum(lam - profile.dark_current_e.astype(np.float64), 0.0)
+    return lam
 
 
 def reset_evidence(recording, profile: SensorProfile | None = None, seed: int = 0, edges=ISI_BINS,

@@ -2,10 +2,11 @@
 
 The chain, for one interval m of the step simulator (Algorithm 2 of the paper)::
 
-    lambda_m [e-]  --compute_collected_rate-->  expected collected e- (refractory, Eq. 6)
+    lambda_m [e-]  --compute_electron_rate--->  + dark current [e-] (dark == "current" only)
+                   --compute_collected_rate-->  expected collected e- (refractory, Eq. 6)
                    --compute_shot_noise------>  photoelectron count   (Poisson, line 6)
                    --compute_prnu------------>  charge [e-]           (PRNU gain, line 6)
-    + compute_dark_events (Eq. 1): a dark event adds one full threshold (line 8)
+    + compute_dark_events (Eq. 1): a dark event adds one full threshold (line 8; dark == "events" only)
     + compute_hot_pixel_charge (Eq. 4): Gaussian charge on hot pixels (line 10)
                    --compute_fire------------>  spike, reset to zero  (lines 11-13)
 
@@ -17,6 +18,20 @@ made here and nowhere else (see ``docs/sensor.md``, "Departures and choices").
 from __future__ import annotations
 
 import numpy as np
+
+
+def compute_electron_rate(rate_e, dark_current_e):
+    """Expected electrons generated per interval [e-]: photoelectrons plus the dark current (``dark == "current"``).
+
+    Dark current as a charge: thermally generated electrons arrive in the photodiode as a Poisson process of
+    ``dark_current_e`` per interval, independent of the photoelectrons, so the pixel's electron arrivals are one
+    Poisson process of rate ``lambda_m + dark_current_e``: the dark electrons are counted toward the same
+    ``k = ceil(theta / g)``, have their own shot noise, and are lost in the refractory (blind) time as light is.
+    ``dark_current_e = None`` (``dark == "events"``) returns ``rate_e`` itself.
+    """
+    if dark_current_e is None:
+        return rate_e
+    return rate_e + dark_current_e
 
 
 def compute_collected_rate(rate_e, refractory_fraction, spiked_prev):

@@ -185,6 +185,11 @@ class _FastModel(SpikeModel):
         raise NotImplementedError
 
 
+def _dark_current(profile: SensorProfile):
+    """(dark current [e-/interval] per pixel, float64 flat; whether it is used): ``dark == "current"``."""
+    return profile.dark_current_e.astype(np.float64).reshape(-1), profile.dark == "current"
+
+
 def _gamma_constants(profile: SensorProfile):
     """Marsaglia-Tsang constants (d = k - 1/3, c = 1/sqrt(9 d)) of each pixel's Gamma(k, 1), k = ceil(theta/g)."""
     k = count_threshold(profile.threshold_e, profile.prnu_gain).reshape(-1)
@@ -193,7 +198,11 @@ def _gamma_constants(profile: SensorProfile):
 
 
 class ELSSimFast(_FastModel):
-    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see the kernels' doc)."""
+    """``elssim``, event-driven: one Gamma variate per light spike, geometric dark gaps (see the kernels' doc).
+
+    With ``dark == "current"`` the kernel adds each pixel's ``dark_current_e`` to its light rate (no copy of the
+    input): the Gamma targets then count photoelectrons and dark electrons together, and there are no dark events.
+    """
 
     name = "elssim"
 
@@ -212,6 +221,7 @@ class ELSSimFast(_FastModel):
         hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
         self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
         self.theta = float(p.threshold_e)
+        self.dc, self.use_dc = _dark_current(p)
 
     def init_state(self) -> dict:
         n = self.n_pixels
@@ -223,7 +233,8 @@ class ELSSimFast(_FastModel):
         elssim_tile(rng, xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, p0, p1,
                      self.hot_tiles[ti], self.gb, self.gc, self.omf, self.dinv, self.has_dark, self.gain,
                      self.hot_mu, self.hot_sigma, self.theta,
-                     state["rem"], state["dark_next"], state["refr"], state["guard"], state["v"], out)
+                     state["rem"], state["dark_next"], state["refr"], state["guard"], state["v"], out, self.dc,
+                     self.use_dc)
 
 
 class ELSSimCrossingFast(_FastModel):
@@ -262,6 +273,7 @@ class ELSSimCrossingFast(_FastModel):
         hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
         self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
         self.theta = float(p.threshold_e)
+        self.dc, self.use_dc = _dark_current(p)
 
     def init_state(self) -> dict:
         n = self.n_pixels
@@ -273,7 +285,7 @@ class ELSSimCrossingFast(_FastModel):
         crossing_tile(rng, xoshiro_state(rng), seg.rates, seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0,
                        p0, p1, self.hot_tiles[ti], self.gb, self.gc, self.fr, self.mu, self.gain, self.hot_mu,
                        self.hot_sigma, self.theta, state["rem"], state["dark_next"], state["blind"], state["guard"],
-                       state["v"], out)
+                       state["v"], out, self.dc, self.use_dc)
 
 
 class IdealFast(_FastModel):
@@ -301,6 +313,8 @@ class ISIFast(_FastModel):
         self.gb, self.gc = _gamma_constants(p)
         # counts throughout (see sensor.models.step.ISIModel): the gain enters once, through k
         self.dark_q = ((p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain).reshape(-1)
+        if p.dark == "current":  # dark electrons per interval count as photoelectrons
+            self.dark_q = self.dark_q + p.dark_current_e.astype(np.float64).reshape(-1)
 
     def init_state(self) -> dict:
         return {"m": 0, "tau": np.full(self.n_pixels, np.nan)}

@@ -159,6 +159,16 @@ if HAVE_NUMBA:
         return s, l0, sl
 
     @_jit_inline
+    def _piece_coeffs_dc(R, w, i, lo, nk, p, n, dc, use_dc):
+        """:func:`_piece_coeffs` of the pixel's electron rate: with ``use_dc`` its dark current ``dc[p]``
+        [e-/interval] adds to the light of every interval (``l0``) and ``n dc[p]`` to the piece's total ``s``."""
+        s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+        if use_dc:
+            s += n * dc[p]
+            l0 += dc[p]
+        return s, l0, sl
+
+    @_jit_inline
     def _crossing(rp, A, beta, nmax):
         """Smallest x in 1..nmax with C(x) = A x + beta x (x - 1) / 2 >= rp, given C(nmax) >= rp.
 
@@ -178,10 +188,31 @@ if HAVE_NUMBA:
         return xi
 
     @_jit_inline
-    def _subtract_and_flag(R, w, i, lo, nk, c0, nt, rm, gd, limit, flag):
+    def _subtract_and_flag(R, w, i, lo, nk, c0, nt, rm, gd, limit, flag, n, dc, use_dc):
         """Pass 1 of the ELSSim kernels (vectorised): subtract piece i's light from the targets ``rm``; flag the
-        pixels whose target is reached or whose ``guard`` (an event time, or a "must look" sentinel) is < ``limit``."""
-        if nk == 2:
+        pixels whose target is reached or whose ``guard`` (an event time, or a "must look" sentinel) is < ``limit``.
+        With ``use_dc`` the dark current ``dc`` [e-/interval] adds ``n dc`` to each pixel's piece (``n`` intervals)."""
+        if use_dc and nk == 2:
+            nf = np.float64(n)
+            w00 = w[i, 0, 0]
+            w01 = w[i, 0, 1]
+            R0 = R[lo, c0:c0 + nt]
+            R1 = R[lo + 1, c0:c0 + nt]
+            d = dc[c0:c0 + nt]
+            for t in range(nt):
+                r_ = rm[t] - ((w00 * np.float64(R0[t]) + w01 * np.float64(R1[t])) + nf * d[t])
+                rm[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < limit)
+        elif use_dc:
+            nf = np.float64(n)
+            for t in range(nt):
+                s = 0.0
+                for r in range(nk):
+                    s += w[i, 0, r] * np.float64(R[lo + r, c0 + t])
+                r_ = rm[t] - (s + nf * dc[c0 + t])
+                rm[t] = r_
+                flag[t] = np.uint8(r_ <= 0.0) | np.uint8(gd[t] < limit)
+        elif nk == 2:
             w00 = w[i, 0, 0]
             w01 = w[i, 0, 1]
             R0 = R[lo, c0:c0 + nt]
@@ -201,7 +232,7 @@ if HAVE_NUMBA:
 
     @_jit_inline
     def _lockstep(rng, xs, R, w, i, lo, nk, a, n, m0, c0, nt, gb, gc, omf, dinv, rem, dark_next, refr, guard,
-                  out, l0v, slv, rmv, jdv, flag, idx):
+                  out, l0v, slv, rmv, jdv, flag, idx, dc, use_dc):
         """Piece ``i`` of sub-chunk ``c0`` for every pixel, one interval at a time (see elssim_tile)."""
         big = np.int64(1) << np.int64(40)
         for t in range(nt):
@@ -214,6 +245,9 @@ if HAVE_NUMBA:
                 s += w[i, 0, r] * x
                 l0 += w[i, 1, r] * x
                 sl += w[i, 2, r] * x
+            if use_dc:
+                s += n * dc[p]
+                l0 += dc[p]
             l0v[t] = l0
             slv[t] = sl
             rp = rem[p] + s  # undo pass 1
@@ -257,7 +291,9 @@ if HAVE_NUMBA:
     @_jit
     def elssim_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx,
                      gb, gc, omf, dinv, has_dark, gain, hot_mu, hot_sigma, theta,
-                     rem, dark_next, refr, guard, v, out):
+                     rem, dark_next, refr, guard, v, out, dc, use_dc):
+        """``elssim`` with the interval reset over one tile (see the module doc). ``dc`` [e-/interval] is each
+        pixel's dark current, added to its light when ``use_dc`` (``dark == "current"``); dark events otherwise."""
         # ---- first block: draw the initial state
         for p in range(p0, p1):
             if rem[p] != rem[p]:  # NaN: not drawn yet
@@ -287,7 +323,7 @@ if HAVE_NUMBA:
                 nk = nk_[i]
                 # ---- pass 1 (vectorised): subtract the piece's expected count; flag pixels that may spike
                 # (guard = dark_next, or -1 while the next interval is a refractory one)
-                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], end, flag)
+                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], end, flag, n, dc, use_dc)
                 # ---- pass 2: the flagged pixels, event by event (compacted first: no branch per pixel)
                 cnt = 0
                 for t in range(nt):
@@ -297,13 +333,13 @@ if HAVE_NUMBA:
                     # most pixels spike here (bright light): step all pixels interval by interval in
                     # lock-step, vectorised; the same algorithm as below, without per-pixel branches
                     _lockstep(rng, xs, R, w, i, lo, nk, a, n, m0, c0, nt, gb, gc, omf, dinv, rem, dark_next,
-                              refr, guard, out, l0v, slv, rmv, jdv, flag, idx)
+                              refr, guard, out, l0v, slv, rmv, jdv, flag, idx, dc, use_dc)
                     continue
                 for c_ in range(cnt):
                     p = c0 + idx[c_]
                     if rem[p] == np.inf:
                         continue  # hot pixel
-                    s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    s, l0, sl = _piece_coeffs_dc(R, w, i, lo, nk, p, n, dc, use_dc)
                     rp = rem[p] + s  # undo pass 1: this piece is now taken interval by interval
                     fp = 1.0 - omf[p]
                     dn = dark_next[p]
@@ -356,7 +392,7 @@ if HAVE_NUMBA:
             lo = lo_[i]
             nk = nk_[i]
             for h in hot_idx:
-                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, h)
+                s, l0, sl = _piece_coeffs_dc(R, w, i, lo, nk, h, n, dc, use_dc)
                 for q in range(n):
                     m = a + q
                     lam = l0 + sl * q
@@ -478,7 +514,7 @@ if HAVE_NUMBA:
 
     @_jit
     def crossing_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx, gb, gc, fr, mu, gain,
-                       hot_mu, hot_sigma, theta, rem, dark_next, blind, guard, v, out):
+                       hot_mu, hot_sigma, theta, rem, dark_next, blind, guard, v, out, dc, use_dc):
         """``elssim`` with the crossing reset (see ``ELSSimCrossingFast``): continuous firing times, no interval reset.
 
         Times are >= 0 and positions >= the piece start, so ``int()`` truncation is the floor throughout.
@@ -489,6 +525,10 @@ if HAVE_NUMBA:
         [intervals] of the next dark event; ``blind`` the end of the blind time after the last firing; ``guard``
         what pass 1 compares with the piece end: ``dark_next``, or -inf while the pixel is blind into the next
         piece (so pass 1 reads two arrays, as the interval kernel does).
+
+        ``dc`` [e-/interval] is each pixel's dark current (``dark == "current"``, with ``use_dc``): it adds to the
+        pixel's light in every interval (``l0``), so it is collected, shot-noise included, and lost in the blind
+        time exactly as light is; ``mu`` is then zero.
         """
         for p in range(p0, p1):
             if rem[p] != rem[p]:  # NaN: not drawn yet (the stream starts reset, not blind, at interval m0)
@@ -513,7 +553,7 @@ if HAVE_NUMBA:
                 lo = lo_[i]
                 nk = nk_[i]
                 # ---- pass 1 (vectorised): subtract the piece's light; flag pixels that may fire or start blind
-                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], fend, flag)
+                _subtract_and_flag(R, w, i, lo, nk, c0, nt, rem[c0:c1], guard[c0:c1], fend, flag, n, dc, use_dc)
                 cnt = 0
                 for t in range(nt):
                     idx[cnt] = t
@@ -525,7 +565,7 @@ if HAVE_NUMBA:
                     p = c0 + idx[c_]
                     if rem[p] == np.inf:
                         continue  # hot pixel
-                    s, l0, sl = _piece_coeffs(R, w, i, lo, nk, p)
+                    s, l0, sl = _piece_coeffs_dc(R, w, i, lo, nk, p, n, dc, use_dc)
                     G = rem[p] + s  # undo pass 1: the target, from the piece start
                     cn = n * l0 + sl * 0.5 * n * (n - 1)  # Lambda_rel(end)
                     dn = dark_next[p]
@@ -589,7 +629,7 @@ if HAVE_NUMBA:
             lo = lo_[i]
             nk = nk_[i]
             for h in hot_idx:
-                s, l0, sl = _piece_coeffs(R, w, i, lo, nk, h)
+                s, l0, sl = _piece_coeffs_dc(R, w, i, lo, nk, h, n, dc, use_dc)
                 for q in range(n):
                     m = np.float64(a + q)
                     lam = l0 + sl * q

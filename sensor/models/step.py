@@ -30,7 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensor.models.effects import (compute_collected_rate, compute_dark_events, compute_fire, compute_hot_pixel_charge,
+from sensor.models.effects import (compute_collected_rate, compute_dark_events, compute_electron_rate, compute_fire,
+                      compute_hot_pixel_charge,
                       compute_hot_pixel_crossings, compute_light_or_dark_crossing, compute_prnu, compute_shot_noise,
                       count_threshold, dark_event_probability)
 from sensor.profile import SensorProfile
@@ -92,7 +93,8 @@ class IdealModel(SpikeModel):
 class ELSSimStep(SpikeModel):
     """Algorithm 2, step by step (the reference definition of ``elssim``).
 
-    Per interval, in this order: refractory-scaled expected count (Eq. 6),
+    Per interval, in this order: the electron rate (light plus dark current when
+    ``dark == "current"``), refractory-scaled expected count (Eq. 6),
     Poisson shot noise, PRNU gain, dark event (Eq. 1), hot-pixel charge
     (Eq. 4), clip at zero, fire and reset to zero. Random draws per interval, in
     this order: Poisson (H, W), uniform (H, W), normal (number of hot pixels).
@@ -110,6 +112,8 @@ class ELSSimStep(SpikeModel):
         self.hot_index = np.flatnonzero(p.hot_mask)
         self.hot_mu = p.hot_mu.reshape(-1)[self.hot_index].astype(np.float64)
         self.hot_sigma = p.hot_sigma.reshape(-1)[self.hot_index].astype(np.float64)
+        #: dark current [e-/interval] added to the light (dark == "current"); None with dark events
+        self.dark_e = p.dark_current_e.astype(np.float64) if p.dark == "current" else None
 
     def init_state(self) -> dict:
         shape = self.profile.shape
@@ -120,7 +124,8 @@ class ELSSimStep(SpikeModel):
         out = np.zeros(lam.shape, bool)
         v, spiked = state["v"], state["spiked"]
         for i in range(lam.shape[0]):
-            expected = compute_collected_rate(lam[i].astype(np.float64), self.f_ref, spiked)
+            rate = compute_electron_rate(lam[i].astype(np.float64), self.dark_e)
+            expected = compute_collected_rate(rate, self.f_ref, spiked)
             v += compute_prnu(compute_shot_noise(expected, rng), self.gain)
             if self.has_dark:
                 v[compute_dark_events(self.p_dark, rng)] += theta
@@ -135,6 +140,9 @@ class ELSSimStep(SpikeModel):
 
 class ELSSimCrossingStep(SpikeModel):
     """``elssim`` with the crossing reset, interval by interval with exact firing times (the reference).
+
+    With ``dark == "current"`` every pixel's photoelectron rate is ``lambda_m + dark_current_e``
+    (:func:`compute_electron_rate`) and there are no dark events (mu_DC = 0).
 
     The model (see :mod:`sensor.models.effects`, "The crossing reset", and docs/sensor.md):
     within interval m photoelectrons arrive as a Poisson process of rate lambda_m;
@@ -168,6 +176,8 @@ class ELSSimCrossingStep(SpikeModel):
         self.cold_index = np.flatnonzero(~hot)
         self.hot_mu = p.hot_mu.reshape(-1)[self.hot_index].astype(np.float64)
         self.hot_sigma = p.hot_sigma.reshape(-1)[self.hot_index].astype(np.float64)
+        #: dark current [e-/interval] added to the light of every pixel (dark == "current"); None with dark events
+        self.dark_e = p.dark_current_e.astype(np.float64).reshape(-1) if p.dark == "current" else None
 
     def init_state(self) -> dict:
         n = self.profile.height * self.profile.width
@@ -183,7 +193,7 @@ class ELSSimCrossingStep(SpikeModel):
         k_c, f_c, mu_c = self.k[cold], self.f[cold], self.mu[cold]
         for i in range(B):
             m = float(state["m"] + i)
-            lam_i = lam[i].reshape(-1).astype(np.float64)
+            lam_i = compute_electron_rate(lam[i].reshape(-1).astype(np.float64), self.dark_e)
             # ---- non-hot pixels: fire as often as the light / dark events say, vectorised
             sel = np.arange(cold.size)
             start = np.maximum(blind[cold], m)
@@ -240,7 +250,10 @@ class ISIModel(SpikeModel):
     period, and the fractional phase is kept in continuous time; the spike is
     read out in the interval containing its time (integer-ISI quantisation).
     Several firings inside one interval give one spike. Hot pixels add a
-    constant current ``hot_mu * theta`` (their sigma is ignored).
+    constant current ``hot_mu * theta`` (their sigma is ignored). With
+    ``dark == "current"`` the dark term is the pixel's ``dark_current_e``
+    (dark electrons per interval, counted as photoelectrons) instead of
+    ``mu_DC * theta / g``.
     """
 
     name = "isi"
@@ -251,6 +264,8 @@ class ISIModel(SpikeModel):
         self.k = count_threshold(p.threshold_e, p.prnu_gain)
         # dark + hot current as photoelectron equivalents per interval
         self.dark_q = (p.dark_rate.astype(np.float64) + p.hot_mu) * p.threshold_e / p.prnu_gain.astype(np.float64)
+        if p.dark == "current":  # dark electrons per interval (counted as photoelectrons), not mu_DC theta / g
+            self.dark_q = self.dark_q + p.dark_current_e.astype(np.float64)
 
     def init_state(self) -> dict:
         # tau: time of the next firing [intervals since stream start]; NaN = not drawn (start, or no charge)
