@@ -35,8 +35,8 @@ or render2spike .npz spike containers. Writes PROFILE plus PROFILE-stem_report.{
 --from-rsir MAPS.npz imports RSIR calibration maps instead (keys Nd, Nl, D_light, each (H, W); mean
 read-out ISI 1 + D_light (335 + Nd) / (lux + Nd) intervals, lux at the focal plane). With the base
 profile's sensitivity s [e-/(interval lux)]: threshold theta = median of s q, q = (1 - f + D_light)
-(335 + Nd), PRNU gain theta / (s q), dark current s Nd [e-/interval] (stored as dark events of the
-same dark-only rate), and RSIR's "+1" as a one-interval blind time (--plus-one dead-time) or folded
+(335 + Nd), PRNU gain theta / (s q), dark current s Nd [e-/interval] as a charge (dark = current),
+and RSIR's "+1" as a one-interval blind time (--plus-one dead-time) or folded
 into the threshold at 335 lux (--plus-one threshold). The maps fix theta / s, not s: pitch, fill
 factor, QE, the reset and hot-pixel statistics come from --base. Writes PROFILE only.
 """
@@ -156,6 +156,6 @@ def run_rsir(args) -> int:
     n = imp.summary()
     print(f"wrote {out}: {n['resolution']}, threshold {n['threshold_e']:.0f} e- (s = "
           f"{n['sensitivity_e_per_lux']:.2f} e-/(interval lux) from '{base.name}'), PRNU sd/mean "
-          f"{n['prnu_sd_over_mean']:.4f}, dark current median {n['dark_current_e_median']:.1f} e-/interval "
-          f"(stored as dark events, median {n['dark_rate_median']:.5f}/interval), '+1' as {n['plus_one']}")
+          f"{n['prnu_sd_over_mean']:.4f}, dark current median {n['dark_current_e_median']:.1f} e-/interval, "
+          f"'+1' as {n['plus_one']}")
     return 0

@@ -230,8 +230,8 @@ def _provenance(source, base: SensorProfile, s, kelvin, plus_one, spread) -> dic
                        "maps fix only theta / s",
         "prnu_gain": f"theta / (s q_model), median 1; equals RSIR's Nl up to its normalisation when the blind time "
                      f"is one interval (Nl consistent with D_light and Nd to {spread:.2g})",
-        "dark_rate": "Nd / q_model: the dark current s Nd [e-/interval] as Poisson dark events with the same "
-                     "dark-only firing rate (dark as events)",
+        "dark_current_e": "s Nd [e-/interval]: RSIR's lux-equivalent dark current as a charge counted with the "
+                          "photoelectrons, before the gain (dark = current)",
         "refractory_s": blind,
         "hot_mask/hot_mu/hot_sigma": "none: the maps hold no hot-pixel statistics (bright pixels of Nd are dark "
                                      "current)",
@@ -246,11 +246,11 @@ def _provenance(source, base: SensorProfile, s, kelvin, plus_one, spread) -> dic
 
 
 def rsir_profile(imp: RsirImport, base: SensorProfile, name: str | None = None) -> SensorProfile:
-    """The sensor profile of an import, with the profile fields that exist (dark as events)."""
+    """The sensor profile of an import: dark current as charge (``dark = "current"``), RSIR's own model."""
     h, w = imp.shape
     return SensorProfile(
-        name=name or "rsir-import", height=h, width=w, threshold_e=imp.threshold_e,
-        dark_rate=imp.dark_rate, hot_mask=np.zeros(imp.shape, bool), hot_mu=np.zeros(imp.shape),
+        name=name or "rsir-import", height=h, width=w, threshold_e=imp.threshold_e, dark="current",
+        dark_current_e=imp.dark_current_e, dark_rate=np.zeros(imp.shape), hot_mask=np.zeros(imp.shape, bool), hot_mu=np.zeros(imp.shape),
         hot_sigma=np.zeros(imp.shape), prnu_gain=imp.prnu_gain, refractory_s=imp.refractory_s,
         interval_s=base.interval_s, clock_hz=base.clock_hz, pixel_pitch_m=base.pixel_pitch_m,
         fill_factor=base.fill_factor, raw_width=base.raw_width if base.shape == imp.shape else None, qe=base.qe,

@@ -44,7 +44,7 @@ def test_round_trip_through_the_saved_profile(tmp_path, base, plus_one):
         np.testing.assert_allclose(prof.prnu_gain / prof.prnu_gain[0, 0], maps["Nl"], rtol=2e-6)
     else:
         np.testing.assert_array_equal(prof.refractory_s, base.refractory_s[:H, :W])
-    for fieldname in ("threshold_e", "prnu_gain", "dark_rate", "refractory_s", "hot_mask/hot_mu/hot_sigma", "qe"):
+    for fieldname in ("threshold_e", "prnu_gain", "dark_current_e", "refractory_s", "hot_mask/hot_mu/hot_sigma", "qe"):
         assert fieldname in prof.provenance
 
 
@@ -137,8 +137,8 @@ def _mean_isi(spikes):
 def test_simulated_mean_isi_at_335_lux_is_one_plus_d_light(base):
     """The crossing ``elssim`` pixel of the imported profile fires at RSIR's rate at 335 lux.
 
-    The dark current enters as charge: the light plus ``dark_current_e`` as the rate, dark events off (what the
-    profile's ``dark = current`` does). Then mean ISI = f + theta / (g (s 335 + d)) = 1 + D_light exactly in
+    The profile holds the dark current as charge (``dark = current``): the simulator adds ``dark_current_e`` to
+    the light. Then mean ISI = f + theta / (g (s 335 + d)) = 1 + D_light exactly in
     both ``--plus-one`` choices. Over 4000 intervals the per-pixel mean is precise to ~1e-4 (relative); the
     PRNU spread it must follow is 5.6 %.
     """
@@ -146,8 +146,9 @@ def test_simulated_mean_isi_at_335_lux_is_one_plus_d_light(base):
     T = 4000
     for plus_one in PLUS_ONE:
         imp = import_rsir({k: v.astype(float) for k, v in maps.items()}, base, plus_one=plus_one)
-        prof = rsir_profile(imp, base).replace(dark_rate=np.zeros((H, W)))
-        rate = (imp.sensitivity_e_per_lux * REFERENCE_LUX + imp.dark_current_e).astype(np.float32)
+        prof = rsir_profile(imp, base)
+        assert prof.dark == "current"
+        rate = np.full((H, W), imp.sensitivity_e_per_lux * REFERENCE_LUX, np.float32)
         spikes = sensor.simulate(np.stack([rate, rate]), prof, "elssim", seed=5,
                                  t_s=np.array([0.0, T * prof.interval_s]))
         mean, n = _mean_isi(spikes)
