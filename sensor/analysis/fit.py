@@ -21,6 +21,37 @@ FIT_STATISTICS = ("isi_cv", "isi_lag1", "fano")
 #: grids of the fit: multipliers of the profile's dark-rate map (0 = no dark events) and of its threshold theta
 DARK_SCALES = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 THRESHOLD_SCALES = (0.125, 0.18, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8, 4.0, 5.6, 8.0)
+#: how far the grids grow when the minimum sits on their edge: threshold scales within these bounds (steps of
+#: sqrt 2), dark scales up to this multiple (steps of x1.5)
+THRESHOLD_SCALE_LIMITS = (1.0 / 64.0, 64.0)
+DARK_SCALE_LIMIT = 20.0
+
+
+def grow_grid(grid, dsc, tsc, objective, t_limits=THRESHOLD_SCALE_LIMITS, d_limit=DARK_SCALE_LIMIT):
+    """Extend the (dark, threshold) grid while its minimum sits on an open edge; returns (grid, dsc, tsc).
+
+    ``grid`` (len(dsc), len(tsc)) holds ``objective(d, t)``. A minimum on the largest or smallest threshold
+    scale adds three geometric steps (sqrt 2) beyond it, within ``t_limits``; one on the largest dark scale
+    adds three steps of x1.5, up to ``d_limit`` (the dark scale's lower edge, 0, is the no-dark model, not an
+    edge to grow past). So a minimum is interior, or on a limit that the notes report.
+    """
+    grid, dsc, tsc = np.asarray(grid, float), list(dsc), list(tsc)
+    while True:
+        i, j = np.unravel_index(int(np.nanargmin(grid)), grid.shape)
+        if j == len(tsc) - 1 and tsc[-1] < t_limits[1]:
+            new = [x for x in (tsc[-1] * 2 ** (k / 2) for k in (1, 2, 3)) if x <= t_limits[1] * (1 + 1e-9)]
+            cols = np.array([[objective(d, t) for t in new] for d in dsc])
+            grid, tsc = np.concatenate([grid, cols], axis=1), tsc + new
+        elif j == 0 and tsc[0] > t_limits[0]:
+            new = [x for x in (tsc[0] / 2 ** (k / 2) for k in (3, 2, 1)) if x >= t_limits[0] * (1 - 1e-9)]
+            cols = np.array([[objective(d, t) for t in new] for d in dsc])
+            grid, tsc = np.concatenate([cols, grid], axis=1), new + tsc
+        elif i == len(dsc) - 1 and 0 < dsc[-1] < d_limit:
+            new = [x for x in (dsc[-1] * 1.5 ** k for k in (1, 2, 3)) if x <= d_limit * (1 + 1e-9)]
+            rows = np.array([[objective(d, t) for t in tsc] for d in new])
+            grid, dsc = np.concatenate([grid, rows], axis=0), dsc + new
+        else:
+            return grid, dsc, tsc
 
 
 @dataclass
@@ -154,7 +185,7 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     if cand.size < 20:
         raise InputError(f"only {cand.size} stationary pixels with >= 3 spikes; the fit needs at least 20")
     flat = s.reshape(T, -1)
-    dsc, tsc = [float(x) for x in dark_scales], [float(x) for x in threshold_scales]
+    dsc0, tsc0 = [float(x) for x in dark_scales], [float(x) for x in threshold_scales]
     per_seed = []
     # disjoint pixel draws while the candidates last (then they wrap round and share pixels)
     order = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(999,))).permutation(cand)
@@ -183,7 +214,8 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
                 cache[key] = distance(rows)["D"]
             return cache[key]
 
-        grid = np.array([[objective(d, t) for t in tsc] for d in dsc])  # (dark, threshold)
+        grid = np.array([[objective(d, t) for t in tsc0] for d in dsc0])  # (dark, threshold)
+        grid, dsc, tsc = grow_grid(grid, dsc0, tsc0, objective)
         i, j = np.unravel_index(int(np.nanargmin(grid)), grid.shape)
         d_grid, t_grid = dsc[i], tsc[j]
         d_best = _parabola_min(dsc, grid[:, j], i)
@@ -194,7 +226,7 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
                          "threshold_scale": t_best, "D_fit_statistics_at_start": float(d_start),
                          "D_fit_statistics_at_grid_min": float(d_fit), "evaluations": len(cache),
                          "at_grid_edge": bool(i in (0, len(dsc) - 1) and dsc[i] > 0 or j in (0, len(tsc) - 1)),
-                         "grid_D": grid.round(3).tolist()})
+                         "grid_D": grid.round(3).tolist(), "dark_grid": dsc, "threshold_grid": tsc})
         say(f"fit seed {r}: dark x{d_best:.3g}, threshold x{t_best:.3g} (D on {'/'.join(FIT_STATISTICS)}: "
             f"{d_start:.2f} at x1, x1 -> {d_fit:.2f})")
     dv = np.array([p["dark_scale"] for p in per_seed])
@@ -205,8 +237,10 @@ def fit_profile(spikes, profile: SensorProfile, *, seed: int = 0, n_seeds: int =
     fitted = scaled_profile(profile, d_mean, t_mean, name=f"{profile.name}-fitted")
     what = "dark-current scale (of the dark firing rate d / theta)" if profile.dark == "current" else \
         "dark-rate scale"
-    notes = {"method": (f"grid search of the {what} (grid " + ", ".join(f"{x:g}" for x in dsc)
-                        + ") and threshold scale (grid " + ", ".join(f"{x:g}" for x in tsc) + ", geometric) "
+    notes = {"method": (f"grid search of the {what} (grid " + ", ".join(f"{x:g}" for x in dsc0)
+                        + ") and threshold scale (grid " + ", ".join(f"{x:g}" for x in tsc0) + ", geometric; "
+                        f"both grown while the minimum sits on an edge, threshold within x{THRESHOLD_SCALE_LIMITS[0]:g}"
+                        f"-x{THRESHOLD_SCALE_LIMITS[1]:g}, dark up to x{DARK_SCALE_LIMIT:g}) "
                         f"minimising D over {', '.join(FIT_STATISTICS)} of elssim (reset {profile.reset}) "
                         f"on {min(n_pixels, cand.size)} random stationary pixels, refined by a parabola; mean "
                         f"over {n_seeds} pixel draws / simulation seeds, uncertainty = their standard deviation "

@@ -72,3 +72,26 @@ def test_realism_cli_fit_writes_a_fitted_profile(tmp_path, capsys):
     capsys.readouterr()
     assert main(args[:-5] + ["--fit-seeds", "1", "--overwrite"]) == 2
     assert "--fit-seeds" in capsys.readouterr().err
+
+
+def test_fit_grid_grows_until_its_minimum_is_interior():
+    """A minimum beyond the threshold grid's top (x20) or the dark grid's top (x6) is found, not clipped."""
+    import numpy as np
+
+    from sensor.analysis.fit import DARK_SCALES, THRESHOLD_SCALES, grow_grid
+
+    def bowl(d, t):  # smallest at dark x6, threshold x20
+        return (np.log(t / 20.0)) ** 2 + (d - 6.0) ** 2
+    grid = np.array([[bowl(d, t) for t in THRESHOLD_SCALES] for d in DARK_SCALES])
+    g, dsc, tsc = grow_grid(grid, DARK_SCALES, THRESHOLD_SCALES, bowl)
+    i, j = np.unravel_index(int(np.argmin(g)), g.shape)
+    assert 0 < j < len(tsc) - 1 and 0 < i < len(dsc) - 1
+    assert abs(np.log(tsc[j] / 20.0)) <= np.log(2) / 4 + 1e-12 and abs(dsc[i] - 6.0) < 6.0 * 0.25
+    assert g.shape == (len(dsc), len(tsc)) and g[i, j] == bowl(dsc[i], tsc[j])
+    # a minimum beyond the limits stops there (the edge is reported by the fit's notes)
+    g, dsc, tsc = grow_grid(grid, DARK_SCALES, THRESHOLD_SCALES, lambda d, t: -t)
+    assert abs(tsc[-1] / 64.0 - 1) < 1e-9 and np.argmin(g) % g.shape[1] == len(tsc) - 1
+    # the lower threshold edge grows too
+    g, dsc, tsc = grow_grid(grid * 0 + np.log(np.array(THRESHOLD_SCALES))[None, :], DARK_SCALES, THRESHOLD_SCALES,
+                            lambda d, t: np.log(t))
+    assert abs(tsc[0] * 64.0 - 1) < 1e-9
