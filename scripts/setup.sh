@@ -49,4 +49,7 @@ python3 -m pip install -q --disable-pip-version-check -e ".[all]"   # a failed i
 # `render2spike simulate` start-up); compile them once here, as a wheel install does. Python checks each .pyc
 # against its source, so an edited module is still compiled afresh (in memory) until the next set-up.
 python3 -m compileall -q -j 0 render2spike sensor recon >/dev/null
+# numba compiles the spike kernels on their first use and caches them beside the source: compile them here once,
+# so neither the first run nor the test suite pays for it
+python3 -m sensor.models.precompile
 python3 -c "import render2spike, sensor, recon" && echo "setup.sh: render2spike installed ($(python3 -m render2spike --version))"
