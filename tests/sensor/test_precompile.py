@@ -1,0 +1,7 @@
+"""The set-up step that compiles the spike kernels runs every fast model, reset and dark mode."""
+
+from sensor.models.precompile import precompile
+
+
+def test_precompile_runs_every_kernel():
+    assert precompile() == 12  # 2 resets x 2 dark modes x 3 models
