@@ -88,6 +88,16 @@ class _FastModel(SpikeModel):
         self.n_bytes = (self.n_pixels + 7) // 8
         self.tiles = [(p0, min(p0 + TILE_PIXELS, self.n_pixels)) for p0 in range(0, self.n_pixels, TILE_PIXELS)]
 
+    def _elssim_maps(self, p: SensorProfile) -> None:
+        """The per-pixel maps both elssim kernels take: gain, hot-pixel current and tiles, theta, dark current."""
+        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
+        self.hot_mu = p.hot_mu.astype(np.float64).reshape(-1)
+        self.hot_sigma = p.hot_sigma.astype(np.float64).reshape(-1)
+        hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
+        self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
+        self.theta = float(p.threshold_e)
+        self.dc, self.use_dc = _dark_current(p)
+
     # the dense interface of SpikeModel, for callers that hand lambda per interval
     def run_block(self, lam, state, rng):
         lam = np.asarray(lam, np.float32)
@@ -215,13 +225,7 @@ class ELSSimFast(_FastModel):
         self.has_dark = (pd > 0).astype(np.uint8)
         with np.errstate(divide="ignore"):
             self.dinv = np.where(pd > 0, -1.0 / np.log1p(-np.minimum(pd, 1.0)), 0.0)
-        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
-        self.hot_mu = p.hot_mu.astype(np.float64).reshape(-1)
-        self.hot_sigma = p.hot_sigma.astype(np.float64).reshape(-1)
-        hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
-        self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
-        self.theta = float(p.threshold_e)
-        self.dc, self.use_dc = _dark_current(p)
+        self._elssim_maps(p)
 
     def init_state(self) -> dict:
         n = self.n_pixels
@@ -267,13 +271,7 @@ class ELSSimCrossingFast(_FastModel):
         self.gb, self.gc = _gamma_constants(p)
         self.fr = p.refractory_fraction.astype(np.float64).reshape(-1)
         self.mu = p.dark_rate.astype(np.float64).reshape(-1)
-        self.gain = p.prnu_gain.astype(np.float64).reshape(-1)
-        self.hot_mu = p.hot_mu.astype(np.float64).reshape(-1)
-        self.hot_sigma = p.hot_sigma.astype(np.float64).reshape(-1)
-        hot = np.flatnonzero(p.hot_mask.reshape(-1)).astype(np.int64)
-        self.hot_tiles = [hot[(hot >= p0) & (hot < p1)] for p0, p1 in self.tiles]
-        self.theta = float(p.threshold_e)
-        self.dc, self.use_dc = _dark_current(p)
+        self._elssim_maps(p)
 
     def init_state(self) -> dict:
         n = self.n_pixels
