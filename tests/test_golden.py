@@ -18,10 +18,21 @@ from tests.render.conftest import needs_mitsuba
 GOLDEN = Path(__file__).parent / "golden" / "golden.json"
 
 
+def _llvm_variant_works() -> bool:
+    try:
+        from render2spike.render.backend import find_libllvm, probe_variant
+        from tests.golden.record import VARIANT
+        return probe_variant(VARIANT, find_libllvm())[0]
+    except ImportError:
+        return False
+
+
 @needs_mitsuba
 @pytest.mark.render
 def test_main_job_hashes_unchanged(tmp_path):
     from tests.golden.record import record
+    if not _llvm_variant_works():
+        pytest.skip("Mitsuba's LLVM variant does not run here (libLLVM 19 missing): the hashes are of its frames")
     want = json.loads(GOLDEN.read_text())
     got = record(tmp_path)
     assert got["run"]["frames"] == want["run"]["frames"], "rendered frames differ from the golden run"

@@ -1,7 +1,8 @@
 """Run the golden cases and print their hashes as JSON: ``python3 -m tests.golden.record > tests/golden/golden.json`` (the commands' own output goes to stderr).
 
 The cases (tests/test_golden.py runs the same ones):
-* the README's main job, ``render2spike run rotating_disk``, on a 16 x 24 window for 10 ms, with ``--dat``;
+* the README's main job, ``render2spike run rotating_disk``, on a 16 x 24 window for 10 ms, with ``--dat``, on
+  the CPU's LLVM variant with the frozen launch (what ``auto`` takes on a machine without a GPU);
 * ``render2spike simulate`` of its frames with each other model and reset, and the reference simulator;
 * ``sensor.simulate`` of an in-memory rate with each model and reset.
 """
@@ -15,8 +16,10 @@ from pathlib import Path
 
 from tests.golden.hashes import _sha, run_hashes, spike_hash
 
+#: the CPU's LLVM variant and the frozen launch, named (not ``auto``): the hashes are of that back end's frames
+VARIANT = "llvm_ad_spectral"
 RUN_ARGS = ["run", "rotating_disk", "--set", "camera.profile.window=[120,180,16,24]",
-            "--duration", "0.01", "--dat", "--quiet"]
+            "--duration", "0.01", "--dat", "--quiet", "--variant", VARIANT, "--launch", "frozen"]
 
 SIMULATE_CASES = {
     "isi": ["--model", "isi", "--seed", "3"],
