@@ -69,7 +69,7 @@ def register(sub) -> None:
     p.add_argument("--base", default="vidar-default", metavar="NAME|PATH",
                    help="profile supplying threshold, refractory time, pitch, fill factor, QE (default: vidar-default)")
     p.add_argument("--name", default=None, help="name stored in the profile (default: calibrated-<base>; with --from-rsir: rsir-<maps stem>)")
-    p.add_argument("--hot-threshold", type=float, default=DEFAULT_HOT_THRESHOLD, metavar="SPIKES",
+    p.add_argument("--hot-threshold", type=float, default=None, metavar="SPIKES",
                    help=f"theta_HT in spikes per interval above the median dark rate (default {DEFAULT_HOT_THRESHOLD})")
     p.add_argument("--height", type=int, default=None, help=".dat frame height (default: the base profile's)")
     p.add_argument("--width", type=int, default=None, help=".dat frame width (default: the base profile's)")
@@ -81,7 +81,7 @@ def register(sub) -> None:
                    help="impose the pixel's reset instead of deciding it from the flats")
     p.add_argument("--keep-threshold", action="store_true",
                    help="store the base profile's threshold (the photon-transfer estimate is still reported)")
-    p.add_argument("--dark-mode", choices=["events", "current"], default="events",
+    p.add_argument("--dark-mode", choices=["events", "current"], default=None,
                    help="how the profile models dark current: 'events' (default, Algorithm 2: dark events that fire "
                         "the pixel, dark_rate) or 'current' (a charge integrated with the light, dark_current_e "
                         "[e-/interval], from each pixel's dark ISI rate through the exact rate law)")
@@ -101,7 +101,7 @@ def run(args) -> int:
     if not args.dark or not args.flat:
         raise InputError("calibrate needs --dark and --flat recordings, or --from-rsir MAPS.npz",
                          field="--flat" if args.dark else "--dark")
-    from sensor.calibration.estimate import calibrate, write_report
+    from sensor.calibration.estimate import DEFAULT_HOT_THRESHOLD, calibrate, write_report
     base_path = args.base if Path(args.base).exists() else None
     out = check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
     for suffix in (".png", ".json"):  # the report beside the profile is an output too
@@ -110,9 +110,11 @@ def run(args) -> int:
     drop = 16 if args.raw else 0
     width = args.width or ((base.raw_width or base.width + 16) if args.raw else base.width)
     prof, report = calibrate([Path(f) for f in args.dark], [Path(f) for f in args.flat], base,
-                             hot_threshold=args.hot_threshold, name=args.name, height=args.height or base.height,
+                             hot_threshold=DEFAULT_HOT_THRESHOLD if args.hot_threshold is None else args.hot_threshold,
+                             name=args.name, height=args.height or base.height,
                              width=width, drop_columns=drop, reset=args.reset, flat_lux=args.flat_lux,
-                             estimate_threshold=not args.keep_threshold, dark_mode=args.dark_mode, progress=print,
+                             estimate_threshold=not args.keep_threshold, dark_mode=args.dark_mode or "events",
+                             progress=print,
                              progress_bar=True)
     out = prof.save(args.out)
     files = write_report(report, prof, out.with_name(out.stem + "_report"))
@@ -141,7 +143,8 @@ def run_rsir(args) -> int:
     from sensor.errors import InputError
     given = [f for f, v in (("--dark", args.dark), ("--flat", args.flat), ("--flat-lux", args.flat_lux),
                             ("--reset", args.reset), ("--keep-threshold", args.keep_threshold), ("--raw", args.raw),
-                            ("--height", args.height), ("--width", args.width)) if v]
+                            ("--height", args.height), ("--width", args.width), ("--dark-mode", args.dark_mode),
+                            ("--hot-threshold", args.hot_threshold is not None)) if v]
     if given:
         raise InputError(f"--from-rsir imports maps; {', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} "
                          "only to calibration from recordings", field=given[0])

@@ -200,6 +200,16 @@ def import_rsir(maps: dict, base: SensorProfile, *, plus_one: str = "dead-time",
             np.full(shape, float(np.median(base.refractory_s)))  # the base's blind time, per pixel when it fits
     f = _fraction(refr, base.interval_s)
     q_model = (1.0 - f + d_light) * (REFERENCE_LUX + nd)  # mean ISI f + q_model / (lux + Nd) = 1 + D_light at 335 lux
+    if base.reset != "crossing":
+        raise CalibrationError(f"the import models a crossing-reset pixel (RSIR's law is its mean ISI); the base "
+                               f"profile '{base.name}' has reset '{base.reset}'", field="--base")
+    bad = ~(q_model > 1e-6 * (REFERENCE_LUX + nd))
+    if np.any(bad):
+        i = np.unravel_index(int(np.argmax(bad)), bad.shape)
+        raise CalibrationError(f"D_light = {d_light[i]:.3g} at row {i[0]}, column {i[1]} leaves no light per firing "
+                               f"once the blind time ({f[i]:.3g} interval) is taken off: the pixel would fire at "
+                               "the read-out's limit at any light (use --plus-one threshold, or check the maps)",
+                               path=source or None, field="D_light")
     theta = float(s * np.median(q_model))
     gain = theta / (s * q_model)
     dark_e = s * nd

@@ -122,7 +122,24 @@ def test_not_an_npz_and_mixed_options_refused(tmp_path, capsys):
     assert "field '--dark'" in capsys.readouterr().err
     assert main(["calibrate", "--out", str(tmp_path / "o.npz")]) == 2
     assert "--from-rsir" in capsys.readouterr().err
+    for flag in (["--dark-mode", "events"], ["--hot-threshold", "0.1"]):  # options of calibration from recordings
+        assert main(["calibrate", "--from-rsir", str(tmp_path / "good.npz"), *flag, "--out",
+                     str(tmp_path / "o.npz")]) == 2
+        assert f"field '{flag[0]}'" in capsys.readouterr().err
     assert not (tmp_path / "o.npz").exists()
+
+
+def test_maps_that_leave_no_light_per_firing_are_refused(tmp_path, capsys):
+    """With the one-interval blind time a D_light of ~0 leaves theta / (g s) ~ 0: one error naming D_light."""
+    maps = synth_maps(3)
+    maps["D_light"] = np.full_like(maps["D_light"], 1e-12)
+    maps["Nl"] = (1.0 / (maps["D_light"] * (335.0 + maps["Nd"]))).astype(np.float32)
+    maps["Nl"] = maps["Nl"] / maps["Nl"][0, 0]
+    np.savez(tmp_path / "maps.npz", **maps)
+    out = tmp_path / "cam.npz"
+    assert main(["calibrate", "--from-rsir", str(tmp_path / "maps.npz"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "field 'D_light'" in err and "no light per firing" in err and not out.exists()
 
 
 def _mean_isi(spikes):
