@@ -82,6 +82,8 @@ def load_state(out) -> dict | None:
     for line in lines:
         try:
             rec = json.loads(line)
+            if "file" not in rec:
+                continue  # not a frame's record
             frames[str(int(rec["tick"]))] = {k: rec[k] for k in ("file", "time_s", "render_noise_ratio") if k in rec}
         except (ValueError, KeyError, TypeError):
             continue
@@ -114,8 +116,14 @@ class Journal:
 
     def append(self, rec: dict) -> None:
         if self._f is None:
-            self._f = open(self.path, "a")
-        self._f.write(json.dumps(rec) + "\n")
+            self._f = open(self.path, "a+b")
+            if self._f.tell() > 0:  # a line cut short by a kill: end it, so the new line stands on its own
+                self._f.seek(-1, os.SEEK_END)
+                cut = self._f.read(1) != b"\n"
+                self._f.seek(0, os.SEEK_END)
+                if cut:
+                    self._f.write(b"\n")
+        self._f.write((json.dumps(rec) + "\n").encode())
         self._f.flush()
         self._dirty = True
         if time.monotonic() - self._last_sync >= self.fsync_every_s:

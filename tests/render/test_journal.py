@@ -51,3 +51,20 @@ def test_a_journal_closed_on_an_error_is_fsynced(tmp_path, monkeypatch):
     except KeyboardInterrupt:
         pass
     assert len(synced) == 1 and (tmp_path / "j.jsonl").read_text().count("\n") == 1
+
+
+def test_a_line_cut_short_by_a_kill_does_not_swallow_the_next_record(tmp_path):
+    """Resuming after a kill mid-line: the journal ends the cut line before appending, and reading skips it
+    (and any record that names no frame file), so the frames before and after are both kept."""
+    import json
+
+    from render2spike.render.folder import JOURNAL_NAME, STATE_NAME, Journal, load_state
+    (tmp_path / STATE_NAME).write_text(json.dumps({"scene_hash": "h"}))
+    path = tmp_path / JOURNAL_NAME
+    path.write_text(json.dumps({"tick": 0, "file": "f0.exr", "time_s": 0.0}) + "\n" + '{"tick": 1, "fi')
+    j = Journal(path)
+    j.append({"tick": 2, "file": "f2.exr", "time_s": 0.002})
+    j.append({"tick": 3, "time_s": 0.003})  # no file: not a frame's record
+    j.close()
+    assert path.read_text().count("\n") == 4
+    assert sorted(load_state(tmp_path)["frames"]) == ["0", "2"]
