@@ -207,22 +207,27 @@ def test_window_count_fano_factor_matches_the_phase_chain(impl, slow_scale):
 
 
 # ------------------------------------------------------------------------------------------ ISI laws
+def inter_firing_times(model, lam, T, seed):
+    """Exact continuous-time gaps [intervals] between consecutive firings of each pixel of a reference
+    crossing model (``record_crossings``) run for ``T`` intervals of constant light ``lam`` [e-/interval]."""
+    model.record_crossings = True
+    st = model.init_state()
+    H, W = model.profile.shape
+    model.run_block(np.full((T, H, W), lam, np.float32), st, np.random.default_rng(seed))
+    pix = np.concatenate([p for p, _ in st["crossings"]])
+    tim = np.concatenate([t for _, t in st["crossings"]])
+    order = np.lexsort((tim, pix))
+    pix, tim = pix[order], tim[order]
+    return np.diff(tim)[pix[1:] == pix[:-1]]
+
+
 def test_continuous_time_isi_law_is_blind_time_plus_gamma_or_dark():
     # the reference records its exact firing times: inter-firing times are f + min(Gamma(k, lam), Exp(mu)), iid
     from sensor.models.step import ELSSimCrossingStep
     k, lam, f, mu = 12, 4.0, 0.3, 0.05
     H, W, T = 12, 12, 600
     prof = crossing_profile(H, W, float(k), refractory_s=f * sensor.INTERVAL_S, dark_rate=mu)
-    model = ELSSimCrossingStep(prof)
-    model.record_crossings = True
-    st = model.init_state()
-    model.run_block(np.full((T, H, W), lam, np.float32), st, np.random.default_rng(8))
-    pix = np.concatenate([p for p, _ in st["crossings"]])
-    tim = np.concatenate([t for _, t in st["crossings"]])
-    order = np.lexsort((tim, pix))
-    pix, tim = pix[order], tim[order]
-    same = pix[1:] == pix[:-1]
-    x = np.diff(tim)[same]
+    x = inter_firing_times(ELSSimCrossingStep(prof), lam, T, seed=8)
     assert x.min() >= f - 1e-9
     res = stats.kstest(x, lambda v: 1.0 - theory.crossing_firing_survival(v, lam, k, f, mu))
     assert res.pvalue > 1e-4, res

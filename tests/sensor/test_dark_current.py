@@ -21,7 +21,7 @@ from sensor.models import fast
 from sensor.profile import DARK_MODES, PROFILE_VERSION
 
 from ..conftest import Z
-from .test_crossing import _rates_agree, discrete_ks, lag1_cov, nth_isis
+from .test_crossing import _rates_agree, discrete_ks, inter_firing_times, lag1_cov, nth_isis
 
 IMPLS = ["reference", "fast"]
 RESETS = ["interval", "crossing"]
@@ -164,15 +164,7 @@ def test_crossing_continuous_firings_are_blind_time_plus_gamma_of_light_plus_dar
     k, lam, d, f = 12, 2.5, 1.5, 0.3
     H, W, T = 12, 12, 600
     prof = current_profile(H, W, float(k), d, refractory_s=f * sensor.INTERVAL_S)
-    model = ELSSimCrossingStep(prof)
-    model.record_crossings = True
-    st = model.init_state()
-    model.run_block(np.full((T, H, W), lam, np.float32), st, np.random.default_rng(8))
-    pix = np.concatenate([p for p, _ in st["crossings"]])
-    tim = np.concatenate([t for _, t in st["crossings"]])
-    order = np.lexsort((tim, pix))
-    pix, tim = pix[order], tim[order]
-    x = np.diff(tim)[pix[1:] == pix[:-1]]
+    x = inter_firing_times(ELSSimCrossingStep(prof), lam, T, seed=8)
     assert x.min() >= f - 1e-9
     assert stats.kstest(x, lambda v: 1.0 - theory.crossing_firing_survival(v, lam + d, k, f)).pvalue > 1e-4
     # teeth: the light alone, and the light plus dark events at the same mean rate, are rejected
