@@ -84,7 +84,7 @@ def sigma_for_count(count: float, table: dict | None = None) -> float:
 def smooth_rate(rate, profile, sigma: float) -> np.ndarray:
     """Smooth a TFP rate map for the dead-time correction: the dark excess, without hot pixels.
 
-    ``x = rate - p_dark`` (each pixel's own dark-event probability per
+    ``x = rate - p_dark`` (each pixel's own expected dark spikes per
     interval) is smoothed by normalised convolution that leaves hot pixels out
     (``G*(x w) / G*w``, ``w = 0`` on hot pixels), and ``p_dark`` is added back.
     In dim light the dark spikes outnumber the signal and the dark rate varies
@@ -92,11 +92,10 @@ def smooth_rate(rate, profile, sigma: float) -> np.ndarray:
     own, and smoothing before the (nonlinear, zero-clipped) inversion avoids the
     upward bias of inverting a few spikes per pixel. ``sigma <= 0``: unchanged.
     """
-    from sensor.models.effects import dark_event_probability
     r = np.asarray(rate, np.float64)
     if sigma <= 0:
         return r
-    p = dark_event_probability(profile.dark_rate).astype(np.float64)
+    p = profile.dark_spike_rate
     w = (~profile.hot_mask).astype(np.float64)
     num = gaussian_denoise(((r - p) * w).astype(np.float32), sigma).astype(np.float64)
     den = gaussian_denoise(w.astype(np.float32), sigma).astype(np.float64)

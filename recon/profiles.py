@@ -16,33 +16,39 @@ from sensor.calibration.vidar import VIDAR_SYNTHETIC
 from sensor.profile import SensorProfile
 
 #: the synthetic sensor drawn when no profile is named (values of the bundled vidar-default profile, see
-#: docs/sensor.md: threshold 2000 e-, dark 94 Hz = 0.0047 events per 50 us interval, log spread 0.37,
-#: PRNU sigma 0.058, 0.1 % hot pixels)
+#: docs/sensor.md: threshold 16,000 e-, dark current as charge, median 78.6 e- per 50 us interval (98 Hz of
+#: dark firing), log spread 0.46, PRNU sigma 0.056, 0.1 % hot pixels)
 DEFAULT_SYNTHETIC = dict(VIDAR_SYNTHETIC, reset="crossing")  # vidar-default's reset (docs/sensor.md)
 
 
 def sensor_maps(profile: SensorProfile) -> np.ndarray:
-    """float32 (3, H, W): dark-event probability per interval (1 - exp(-mu_DC)), PRNU gain, hot-pixel indicator.
+    """float32 (4, H, W): expected dark spikes per interval, PRNU gain, hot-pixel indicator, dark-as-charge indicator.
 
-    The network's map features use the first ``n_maps`` channels (2, or 1 for
-    the ``rsir`` preset); the hot-pixel indicator (1 where the profile's pixel is
-    hot, else 0) tells the output head's classic estimates which pixels to
-    leave out of their smoothing (:func:`recon.nets.classic_bank`).
+    Channel 0 is the dark floor of each pixel's rate in either dark mode
+    (:attr:`sensor.SensorProfile.dark_spike_rate`). The network's map features
+    use the first ``n_maps`` channels (2, or 1 for the ``rsir`` preset); the
+    hot-pixel indicator (1 where the profile's pixel is hot, else 0) tells the
+    output head's classic estimates which pixels to leave out of their
+    smoothing, and the last channel (1 where the profile's dark current is a
+    charge, ``dark == "current"``, 0 for dark events) how to take the dark
+    floor off (:func:`recon.nets.classic_bank`).
     """
-    from sensor.models.effects import dark_event_probability
-    return np.stack([dark_event_probability(profile.dark_rate), profile.prnu_gain,
-                     profile.hot_mask]).astype(np.float32)
+    charge = np.full(profile.shape, 1.0 if profile.dark == "current" else 0.0)
+    return np.stack([profile.dark_spike_rate, profile.prnu_gain, profile.hot_mask, charge]).astype(np.float32)
 
 
 def uniform_profile(height: int, width: int) -> SensorProfile:
     """The default sensor where none is known (real recordings without a profile): every pixel alike.
 
-    The vidar-like threshold, refractory time, reset and the *mean* dark rate of
-    :data:`DEFAULT_SYNTHETIC`, with no PRNU, no dark-rate spread and no hot
-    pixels (nothing drawn at random: the pixels' real fixed pattern is unknown).
+    The vidar-like threshold, refractory time, reset, dark mode and the *mean*
+    dark current (or dark rate) of :data:`DEFAULT_SYNTHETIC`, with no PRNU, no
+    dark spread and no hot pixels (nothing drawn at random: the pixels' real
+    fixed pattern is unknown).
     """
     d = DEFAULT_SYNTHETIC
-    return SensorProfile.synthetic(height, width, threshold_e=d["threshold_e"], dark_rate=d["dark_rate"],
+    dark = d.get("dark", "events")
+    level = {"dark_current_e": d["dark_current_e"]} if dark == "current" else {"dark_rate": d["dark_rate"]}
+    return SensorProfile.synthetic(height, width, threshold_e=d["threshold_e"], dark=dark, **level,
                                    refractory_s=d["refractory_s"], reset=d["reset"],
                                    name=f"recon-uniform-{height}x{width}")
 

@@ -35,6 +35,7 @@ import numpy as np
 
 from sensor.errors import ProfileError
 from sensor.io.fileio import atomic_path, provenance as _provenance
+from sensor.models.effects import dark_spike_probability
 from sensor.spectral import SpectralCurve
 from sensor.units import CLOCK_HZ, INTERVAL_S, TIME_UNIT_S, per_interval_to_hz, seconds_to_intervals
 
@@ -219,6 +220,16 @@ class SensorProfile:
     @property
     def pixel_area_m2(self) -> float:
         return self.pixel_pitch_m ** 2
+
+    @property
+    def dark_spike_rate(self) -> np.ndarray:
+        """Expected dark spikes per interval of each pixel in the dark, float64 (H, W), either dark mode.
+
+        Hot pixels are not included (their charge is separate: ``hot_mu``). See
+        :func:`sensor.models.effects.dark_spike_probability`.
+        """
+        return dark_spike_probability(self.dark, self.dark_rate, self.dark_current_e, self.threshold_e,
+                                      self.prnu_gain)
 
     # --------------------------------------------------------------- building
     @classmethod

@@ -20,7 +20,8 @@ def frames(tmp_path_factory):
     yy, xx = np.mgrid[0:H, 0:W]
     base = np.stack([0.3 + 0.25 * np.sin(2 * np.pi * (xx - 300 * ti) / 12) * np.cos(2 * np.pi * yy / 8) for ti in t])
     prof = sensor.SensorProfile.load("vidar-default")
-    phi = base * 900 / (prof.pixel_pitch_m ** 2 * prof.fill_factor * prof.interval_s)  # 900 e-/interval at 1.0
+    # 0.45 threshold per interval at 1.0 (7,200 e-/interval with vidar-default's 16,000 e-)
+    phi = base * 0.45 * prof.threshold_e / (prof.pixel_pitch_m ** 2 * prof.fill_factor * prof.interval_s)
     sensor.write_frames(folder, phi.astype(np.float32), t, manifest={"illuminance_lux": 100.0})
     return folder
 
@@ -31,7 +32,7 @@ def test_signal_scales_linearly_with_lux(frames):
     # rendering is linear in the light: 10x the lux is 10x the clean photoelectron rate, exactly
     np.testing.assert_allclose([r["signal_e_per_interval"] for r in b],
                                [10 * r["signal_e_per_interval"] for r in a], rtol=1e-5)
-    assert a[0]["signal_e_per_interval"] == pytest.approx(900 * 0.3 / 100, rel=0.1)
+    assert a[0]["signal_e_per_interval"] == pytest.approx(0.45 * 16000 * 0.3 / 100, rel=0.1)
     # the noise-free window average is scored once per (lux, centre, seed) of the first model
     assert sum(r["method"] == NOISE_FREE_LABEL for r in a) == 2
 

@@ -53,17 +53,20 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -
     """The classic estimates the output head chooses among: (B, len(sigmas), H, W), target units.
 
     The TFP over all ``windows`` (B, N, H, W) [spikes per interval], its
-    excess over each pixel's dark-event probability smoothed by a Gaussian of
-    each width in ``sigmas`` [pixels] with hot pixels left out (normalised
-    convolution, as :func:`recon.baselines.smooth_rate`; width 0 keeps each
-    pixel's own value, hot pixels take their neighbours' at 1 pixel), the
-    dark level added back and the rate inverted to light with
-    :func:`crossing_light`, divided by the PRNU gain. Below about 0.9 spikes
-    per interval this is, within ``f + 1 % + mu``, the dead-time-corrected TFP
-    of :func:`recon.baselines.tfp_dt_denoised` for the crossing reset.
-    ``maps`` (B, >= 2, H, W) = dark probability, PRNU gain and, as a third
-    channel, the hot-pixel indicator (:func:`recon.profiles.sensor_maps`);
-    None: no dark, gain 1, no hot pixels.
+    excess over each pixel's dark floor (expected dark spikes per interval)
+    smoothed by a Gaussian of each width in ``sigmas`` [pixels] with hot
+    pixels left out (normalised convolution, as
+    :func:`recon.baselines.smooth_rate`; width 0 keeps each pixel's own value,
+    hot pixels take their neighbours' at 1 pixel), then turned into light:
+    with dark events, the dark level added back and the rate inverted with
+    :func:`crossing_light`; with dark current as a charge (the light and the
+    dark electrons cross the threshold together), the excess itself, clipped
+    at 0. Divided by the PRNU gain. Below about 0.9 spikes per interval this
+    is, within ``f + 1 % + mu``, the dead-time-corrected TFP of
+    :func:`recon.baselines.tfp_dt_denoised` for the crossing reset.
+    ``maps`` (B, >= 2, H, W) = dark floor, PRNU gain and, as third and fourth
+    channels, the hot-pixel and dark-as-charge indicators
+    (:func:`recon.profiles.sensor_maps`); None: no dark, gain 1, no hot pixels.
     """
     _check_4d(windows, "windows")
     r = windows.mean(dim=1, keepdim=True)
@@ -78,6 +81,7 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -
         p = maps[:, 0:1].to(r.dtype)
         g = maps[:, 1:2].to(r.dtype).clamp_min(0.05) if maps.shape[1] > 1 else torch.ones_like(r)
         w = (1.0 - (maps[:, 2:3] > 0).to(r.dtype)) if maps.shape[1] > 2 else torch.ones_like(r)
+    charge = (maps[:, 3:4] > 0) if maps is not None and maps.shape[1] > 3 else torch.zeros_like(r, dtype=torch.bool)
     x = r - p
     xw = x * w
 
@@ -88,7 +92,7 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -
     out = []
     for sig in sigmas:
         xs = torch.where(w > 0, x, smooth(1.0)) if sig <= 0 else smooth(sig)
-        out.append(crossing_light(xs + p, mu) / g)
+        out.append(torch.where(charge, xs.clamp_min(0.0), crossing_light(xs + p, mu)) / g)
     return torch.cat(out, dim=1)
 
 

@@ -82,9 +82,10 @@ def register(sub) -> None:
     p.add_argument("--keep-threshold", action="store_true",
                    help="store the base profile's threshold (the photon-transfer estimate is still reported)")
     p.add_argument("--dark-mode", choices=["events", "current"], default=None,
-                   help="how the profile models dark current: 'events' (default, Algorithm 2: dark events that fire "
-                        "the pixel, dark_rate) or 'current' (a charge integrated with the light, dark_current_e "
-                        "[e-/interval], from each pixel's dark ISI rate through the exact rate law)")
+                   help="how the profile models dark current (default: as the --base profile does; vidar-default: "
+                        "current): 'events' (Algorithm 2: dark events that fire the pixel, dark_rate) or 'current' (a "
+                        "charge integrated with the light, dark_current_e [e-/interval], from each pixel's dark ISI "
+                        "rate through the exact rate law)")
     add_overwrite(p, "replace an existing PROFILE (and its report)")
     p.set_defaults(func=run)
 
@@ -113,7 +114,7 @@ def run(args) -> int:
                              hot_threshold=DEFAULT_HOT_THRESHOLD if args.hot_threshold is None else args.hot_threshold,
                              name=args.name, height=args.height or base.height,
                              width=width, drop_columns=drop, reset=args.reset, flat_lux=args.flat_lux,
-                             estimate_threshold=not args.keep_threshold, dark_mode=args.dark_mode or "events",
+                             estimate_threshold=not args.keep_threshold, dark_mode=args.dark_mode,
                              progress=print,
                              progress_bar=True)
     out = prof.save(args.out)

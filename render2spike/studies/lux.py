@@ -98,7 +98,7 @@ def run_job(job: SweepJob) -> list[dict]:
     spikes = simulate_clip(rate, t, prof, job.model, job.seed, job.preroll)
     methods = parse_study_methods(list(job.methods), job.window)
     load_study_models(methods)
-    dark = float(np.mean(prof.dark_rate)) * job.window
+    dark = float(np.mean(prof.dark_spike_rate)) * job.window
     unsettled = unsettled_fraction(rate[0], prof.threshold_e, job.preroll)
     rows = []
     for c in job.centers:

@@ -199,7 +199,7 @@ def _isi_stats(trains: list[np.ndarray]):
 def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_threshold: float = DEFAULT_HOT_THRESHOLD,
               name: str | None = None, height: int | None = None, width: int | None = None, drop_columns: int = 0,
               min_hot_isis: int = 20, reset: str | None = None, flat_lux=None, estimate_threshold: bool = True,
-              dark_mode: str = "events", progress=None, progress_bar: bool = False):
+              dark_mode: str | None = None, progress=None, progress_bar: bool = False):
     """Estimate a :class:`SensorProfile` from dark and flat-field recordings.
 
     Parameters
@@ -232,9 +232,10 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     estimate_threshold : bool
         Store the photon-transfer threshold in the profile (default); False keeps
         the base profile's threshold (the estimate is still reported).
-    dark_mode : "events" or "current"
-        How the written profile models dark current (its ``dark``): ``"events"``
-        (default) estimates ``dark_rate`` (mu_DC of dark events); ``"current"``
+    dark_mode : None, "events" or "current"
+        How the written profile models dark current (its ``dark``); None (default):
+        as the base profile does. ``"events"`` estimates ``dark_rate`` (mu_DC of
+        dark events); ``"current"``
         estimates ``dark_current_e`` [e-/interval], a charge integrated with the
         light, by inverting each pixel's dark ISI rate through the exact rate law of
         the calibrated reset and threshold (numbers ``dark_current_e_median``,
@@ -257,10 +258,11 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         ``sensitivity_se``.
     """
     say = progress or (lambda msg: None)
+    base = base if isinstance(base, SensorProfile) else SensorProfile.load(base)
+    dark_mode = base.dark if dark_mode is None else dark_mode
     if dark_mode not in ("events", "current"):
         raise CalibrationError(f"unknown dark mode '{dark_mode}'; valid choices: events, current", field="--dark-mode")
     current = dark_mode == "current"
-    base = base if isinstance(base, SensorProfile) else SensorProfile.load(base)
     if not dark:
         raise CalibrationError("no dark recordings given (need at least 1; the paper uses 20)", field="--dark")
     if len(flat) < 2:

@@ -1,7 +1,9 @@
 """The bundled Vidar profiles: how they are built and where every value comes from.
 
 Run ``python -m sensor.calibration.vidar`` to rebuild ``sensor/data/vidar-default.npz`` and
-``sensor/data/vidar-calibrated.npz`` (deterministic: seed 20250101). The provenance of each value is stored in the
+``sensor/data/vidar-events.npz`` (deterministic: seed 20250101). ``vidar-default`` is the calibrated camera
+(dark current as charge, theta 16,000 e-); ``vidar-events`` keeps Algorithm 2's structure (dark events that fire
+the pixel, theta 2000 e-) for comparison with the paper. The provenance of each value is stored in the
 profile itself (``profile.provenance``) and listed in ``docs/sensor.md``.
 """
 
@@ -18,7 +20,7 @@ VIDAR_SEED = 20250101
 DARK_RATE_HZ = 94.0  # mean dark spike rate per pixel [Hz]
 DARK_RATE_SIGMA_HZ = 36.0  # pixel-to-pixel spread [Hz]
 
-PROVENANCE = {
+EVENTS_PROVENANCE = {
     "height/width": "400 x 250 active pixels: published (SpikeCV recVidarReal2019/config.yaml spike_w/spike_h; "
                     "RSIR and SpikeCV loaders read 250 x 416 raw frames and keep 400 columns).",
     "raw_width": "416: constant in public loader code (SpikeCV load_dat.py get_row_index uses columns 400..415 as "
@@ -63,21 +65,21 @@ PROVENANCE = {
              "(mean ISI 3-6/6-10/10-20) on a 250 x 400 outdoor Vidar recording against -0.02 for the interval "
              "reset.",
     "dark": "events (Algorithm 2 as published: dark_rate dark events per interval, each fires the pixel). This "
-            "profile keeps the paper's dark events; dark='current' (dark electrons per interval integrated with the "
-            "light) is the alternative, with no calibrated map here.",
+            "profile keeps the paper's dark events for comparison; vidar-default takes the dark current as a charge "
+            "(dark='current'), which real recordings ask for.",
     "dark_current_e": "zero: this profile's dark current is the dark_rate map of dark events (dark='events').",
 }
 
 
-#: ``vidar-calibrated``: dark current as charge and a threshold set by daylight regularity and RSIR's flats
-#: (docs/sensor.md, "Threshold and sensitivity"); the same draw (seed) and every other value of vidar-default
+#: ``vidar-default``: dark current as charge and a threshold set by daylight regularity and RSIR's flats
+#: (docs/sensor.md, "Threshold and sensitivity"); the same draw (seed) and every other value of vidar-events
 THRESHOLD_E = 16000.0  # theta [e-]
 CALIBRATED_DARK_RATE_HZ = 98.0  # median dark firing rate [Hz] (RSIR: 0.0049 spikes per interval in the dark)
 DARK_CURRENT_SPREAD = 0.46  # sigma of the log of the dark-current map (RSIR's Nd: 1st-99th pct 2.5-21.2 around 7.66)
 #: median dark current [e-/interval]: the charge that fires a pixel at CALIBRATED_DARK_RATE_HZ (rate = d / theta)
 DARK_CURRENT_MEDIAN_E = float(hz_to_per_interval(CALIBRATED_DARK_RATE_HZ, INTERVAL_S)) * THRESHOLD_E
 
-CALIBRATED_PROVENANCE = dict(PROVENANCE, **{
+PROVENANCE = dict(EVENTS_PROVENANCE, **{
     "prnu_gain": "Gaussian, sigma 0.056 around 1: RSIR's calibration of a real Vidar (its relative gain map Nl has "
                  "sd/mean 5.6 %; the spike-rate spread over pixels on its 335-lux flat is 4.9 %). SCSim's photo-gain "
                  "spread (0.0584) agrees.",
@@ -113,10 +115,10 @@ CALIBRATED_PROVENANCE = dict(PROVENANCE, **{
                    "sensitivity reproduces RSIR's flat-field rates (see threshold_e). A smaller fill factor with a "
                    "proportionally smaller threshold fires identically.",
 })
-CALIBRATED_PROVENANCE.pop("dark_rate_events", None)
 
-#: the statistics of ``vidar-calibrated`` as :meth:`SensorProfile.synthetic` arguments
-VIDAR_CALIBRATED_SYNTHETIC = dict(
+#: the statistics of ``vidar-default`` as :meth:`SensorProfile.synthetic` arguments (also used to draw
+#: vidar-like sensors of other sizes, e.g. by the datasets and the benchmark)
+VIDAR_SYNTHETIC = dict(
     threshold_e=THRESHOLD_E,
     dark="current", dark_current_e=DARK_CURRENT_MEDIAN_E * float(np.exp(0.5 * DARK_CURRENT_SPREAD ** 2)),
     dark_current_spread=DARK_CURRENT_SPREAD,
@@ -126,9 +128,9 @@ VIDAR_CALIBRATED_SYNTHETIC = dict(
 )
 
 
-#: the statistics of ``vidar-default`` as :meth:`SensorProfile.synthetic` arguments (also used to draw
-#: vidar-like sensors of other sizes, e.g. by the datasets and the benchmark)
-VIDAR_SYNTHETIC = dict(
+#: the statistics of ``vidar-events`` (Algorithm 2's dark events, theta 2000 e-) as
+#: :meth:`SensorProfile.synthetic` arguments
+VIDAR_EVENTS_SYNTHETIC = dict(
     threshold_e=2000.0,
     dark_rate=float(hz_to_per_interval(DARK_RATE_HZ, INTERVAL_S)), dark_rate_spread=0.37,
     prnu_sigma=0.058,
@@ -138,21 +140,20 @@ VIDAR_SYNTHETIC = dict(
 
 
 def build_vidar_default() -> SensorProfile:
-    """Draw the ``vidar-default`` instance (deterministic)."""
-    p = SensorProfile.synthetic(
+    """Draw the ``vidar-default`` instance: the calibrated camera (deterministic)."""
+    return SensorProfile.synthetic(
         250, 400, **VIDAR_SYNTHETIC, seed=VIDAR_SEED, name="vidar-default",
-        interval_s=INTERVAL_S, clock_hz=CLOCK_HZ, pixel_pitch_m=20e-6, fill_factor=0.5, raw_width=416,
+        interval_s=INTERVAL_S, clock_hz=CLOCK_HZ, pixel_pitch_m=20e-6, fill_factor=1.0, raw_width=416,
         qe=generic_cmos_qe(), reset="crossing", provenance=dict(PROVENANCE),
     )
-    return p
 
 
-def build_vidar_calibrated() -> SensorProfile:
-    """Draw the ``vidar-calibrated`` instance (deterministic; the same seed and draw as ``vidar-default``)."""
+def build_vidar_events() -> SensorProfile:
+    """Draw the ``vidar-events`` instance: Algorithm 2's dark events at theta 2000 e- (deterministic; same seed)."""
     return SensorProfile.synthetic(
-        250, 400, **VIDAR_CALIBRATED_SYNTHETIC, seed=VIDAR_SEED, name="vidar-calibrated",
-        interval_s=INTERVAL_S, clock_hz=CLOCK_HZ, pixel_pitch_m=20e-6, fill_factor=1.0, raw_width=416,
-        qe=generic_cmos_qe(), reset="crossing", provenance=dict(CALIBRATED_PROVENANCE),
+        250, 400, **VIDAR_EVENTS_SYNTHETIC, seed=VIDAR_SEED, name="vidar-events",
+        interval_s=INTERVAL_S, clock_hz=CLOCK_HZ, pixel_pitch_m=20e-6, fill_factor=0.5, raw_width=416,
+        qe=generic_cmos_qe(), reset="crossing", provenance=dict(EVENTS_PROVENANCE),
     )
 
 
@@ -271,7 +272,7 @@ def main(out: str | Path | None = None) -> list[Path]:
     """Write both bundled profiles into ``out`` (a folder; default: the package's data folder)."""
     folder = Path(out) if out else DATA_DIR
     return [build_vidar_default().save(folder / "vidar-default.npz"),
-            build_vidar_calibrated().save(folder / "vidar-calibrated.npz")]
+            build_vidar_events().save(folder / "vidar-events.npz")]
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -86,6 +86,21 @@ def dark_event_probability(dark_rate):
     return -np.expm1(-np.asarray(dark_rate, np.float64))
 
 
+def dark_spike_probability(dark, dark_rate, dark_current_e, threshold_e, gain):
+    """Expected dark spikes per interval of a pixel in the dark, float64 array (the dark floor of its rate).
+
+    ``dark == "events"``: the probability of at least one dark event, ``1 - exp(-mu_DC)``
+    (:func:`dark_event_probability`). ``dark == "current"``: the dark current's firing rate
+    ``d / k`` with ``k = ceil(theta / g)`` (:func:`count_threshold`), capped at 1 (the read-out
+    reports at most one spike per interval); the blind time after each spike is neglected
+    (it shortens a dark pixel's collection by ``refractory_fraction * rate``, under 1e-5 here).
+    """
+    if dark == "events":
+        return dark_event_probability(dark_rate)
+    k = count_threshold(threshold_e, gain)
+    return np.minimum(np.asarray(dark_current_e, np.float64) / k, 1.0)
+
+
 def compute_dark_events(p_dark, rng: np.random.Generator):
     """Whether a dark event occurs this interval, bool array (Eq. 1, Algorithm 2 line 8).
 

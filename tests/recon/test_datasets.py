@@ -48,7 +48,7 @@ def test_davis_loader_shapes_seeding_and_split(davis_root):
                       frame_stride=2, **SMALL)
     assert ds.sequences == ["seq-a", "seq-b"] and len(ds) == 4
     s = ds.sample(0)
-    assert s.windows.shape == (10, 8, 8) and s.target.shape == (1, 8, 8) and s.maps.shape == (3, 8, 8)
+    assert s.windows.shape == (10, 8, 8) and s.target.shape == (1, 8, 8) and s.maps.shape == (4, 8, 8)
     assert s.windows.dtype == np.float32 and s.spikes is None
     assert 20.0 <= s.meta["lux"] <= 200.0
     again = ds.sample(0)
@@ -179,7 +179,7 @@ def test_rendered_loader_simulated_and_stored(tmp_path):
 
 def test_resolve_profile():
     p = resolve_profile(None, 6, 10)
-    assert p.shape == (6, 10) and p.threshold_e == 2000.0
+    assert p.shape == (6, 10) and p.threshold_e == 16000.0 and p.dark == "current"  # vidar-default's values
     big = SensorProfile.synthetic(20, 20, threshold_e=5.0)
     assert resolve_profile(big, 6, 10).shape == (6, 10)
     with pytest.raises(InputError, match="smaller"):

@@ -20,7 +20,7 @@ from scipy import stats
 import sensor
 from sensor.calibration.estimate import calibrate
 from sensor.models.effects import count_threshold
-from sensor.calibration.vidar import VIDAR_SYNTHETIC
+from sensor.calibration.vidar import VIDAR_EVENTS_SYNTHETIC as VIDAR_SYNTHETIC
 
 S_TRUE = 200.0  # planted photoelectrons per lux per interval (a gain-1 pixel)
 LUX = (0.5, 1.5, 3.0, 5.0)  # 100 .. 1000 e-/interval: 0.05 .. 0.5 spikes per interval

@@ -33,17 +33,17 @@ def test_simulate_from_npz_keyframes_matches_python_api(tmp_path, capsys):
 
 def test_simulate_frames_folder_to_dat_uses_profile_window(tmp_path, capsys):
     prof = sensor.SensorProfile.load("vidar-default")
-    phi = np.full((3, 8, 16), 1.5e16, np.float32)  # e-/(s m^2)
+    phi = np.full((3, 8, 16), 1.2e17, np.float32)  # e-/(s m^2)
     sensor.write_frames(tmp_path / "frames", phi, [0.0, 0.005, 0.01])
     rc = main(["simulate", str(tmp_path / "frames"), "--out", str(tmp_path / "s.dat"), "--model", "ideal"])
     assert rc == 0
     assert "centred 8x16 window" in capsys.readouterr().out
     s = sensor.read_dat(tmp_path / "s.dat", 8, 16)
     assert s.shape == (200, 8, 16)
-    # ideal model (no PRNU): rate_e = 1.5e16 * (20e-6)^2 * 0.5 * 50e-6 = 150 e-/interval, theta = 2000 e-
-    # -> a spike every ceil(2000 / 150) = 14 intervals -> 200 // 14 = 14 spikes in every pixel
-    assert prof.threshold_e == 2000.0
-    np.testing.assert_array_equal(s.sum(axis=0), 14)
+    # ideal model (no PRNU, no dark): rate_e = 1.2e17 * (20e-6)^2 * 1.0 * 50e-6 = 2400 e-/interval, theta = 16,000 e-
+    # -> a spike every ceil(16000 / 2400) = 7 intervals -> 200 // 7 = 28 spikes in every pixel
+    assert (prof.threshold_e, prof.fill_factor) == (16000.0, 1.0)
+    np.testing.assert_array_equal(s.sum(axis=0), 28)
 
 
 def test_bad_input_is_one_clear_line(tmp_path, capsys):
@@ -101,7 +101,7 @@ def test_info_on_a_bad_npz_is_one_clear_line(tmp_path, capsys):
 def test_info_on_profile_and_spikes(tmp_path, capsys):
     assert main(["info", "vidar-default", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["threshold_e"] == 2000.0 and info["resolution"] == "250 x 400"
+    assert info["threshold_e"] == 16000.0 and info["resolution"] == "250 x 400" and info["dark"] == "current"
     sensor.write_dat(tmp_path / "a.dat", np.ones((4, 2, 8), bool))
     assert main(["info", str(tmp_path / "a.dat"), "--height", "2", "--width", "8", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["intervals"] == 4

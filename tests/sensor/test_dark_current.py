@@ -77,7 +77,9 @@ def test_dark_field_validated_saved_loaded_windowed_and_summarised(tmp_path):
     assert s["dark_current_hz_equiv_median"] == pytest.approx(np.median(d) / 50.0 / sensor.INTERVAL_S, rel=1e-6)
     assert "dark_current_e_median" not in ev.summary() and ev.summary()["dark"] == "events"
     vd = sensor.SensorProfile.load("vidar-default")
-    assert vd.dark == "events" and not vd.dark_current_e.any() and "dark" in vd.provenance
+    assert vd.dark == "current" and not vd.dark_rate.any() and "dark" in vd.provenance
+    ve = sensor.SensorProfile.load("vidar-events")
+    assert ve.dark == "events" and not ve.dark_current_e.any() and "dark" in ve.provenance
 
 
 def _rewrite_meta(path, out, change):

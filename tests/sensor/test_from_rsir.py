@@ -53,8 +53,8 @@ def test_threshold_is_s_times_the_median_light_per_firing(base):
     imp = import_rsir({k: v.astype(float) for k, v in maps.items()}, base)
     q = maps["D_light"].astype(float) * (REFERENCE_LUX + maps["Nd"])
     assert imp.threshold_e == pytest.approx(imp.sensitivity_e_per_lux * np.median(q), rel=1e-6)  # f = 1 - 3e-8 (float32 s)
-    # s from the project's photometry: about 65 e-/(interval lux) for vidar-default's 20 um, fill factor 0.5
-    assert 50 < imp.sensitivity_e_per_lux < 80
+    # s from the project's photometry: about 130 e-/(interval lux) for vidar-default's 20 um, fill factor 1.0
+    assert 100 < imp.sensitivity_e_per_lux < 160
 
 
 def test_cli_in_process(tmp_path, capsys):

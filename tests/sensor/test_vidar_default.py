@@ -1,4 +1,4 @@
-"""The bundled ``vidar-calibrated`` profile holds what its provenance and docs/sensor.md say it holds."""
+"""The bundled ``vidar-default`` profile holds what its provenance and docs/sensor.md say it holds."""
 
 import numpy as np
 import pytest
@@ -6,17 +6,16 @@ import pytest
 import sensor
 from sensor import units
 from sensor.calibration.rsir import sensitivity_e_per_lux
-from sensor.calibration.vidar import (DARK_CURRENT_MEDIAN_E, THRESHOLD_E, build_vidar_calibrated,
-                                      build_vidar_default)
+from sensor.calibration.vidar import DARK_CURRENT_MEDIAN_E, THRESHOLD_E, build_vidar_default, build_vidar_events
 
 
 @pytest.fixture(scope="module")
 def cal():
-    return sensor.SensorProfile.load("vidar-calibrated")
+    return sensor.SensorProfile.load("vidar-default")
 
 
 def test_the_bundled_file_is_what_the_module_builds(cal):
-    built = build_vidar_calibrated()
+    built = build_vidar_default()
     for nm in ("dark_current_e", "dark_rate", "prnu_gain", "hot_mask", "hot_mu", "hot_sigma", "refractory_s"):
         assert np.array_equal(getattr(cal, nm), getattr(built, nm)), nm
     assert cal.provenance == built.provenance and cal.threshold_e == built.threshold_e
@@ -33,9 +32,10 @@ def test_values_and_provenance(cal):
     assert np.std(cal.prnu_gain) == pytest.approx(0.056, rel=0.02)
     for fieldname in ("threshold_e", "dark", "dark_current_e", "prnu_gain", "fill_factor"):
         assert fieldname in cal.provenance
-    # the draw is vidar-default's: the same hot pixels and refractory map
-    default = build_vidar_default()
-    assert np.array_equal(cal.hot_mask, default.hot_mask)
+    # the draw is vidar-events's: the same hot pixels and refractory map
+    events = build_vidar_events()
+    assert np.array_equal(cal.hot_mask, events.hot_mask)
+    assert (events.dark, events.threshold_e) == ("events", 2000.0)
 
 
 def test_sensitivity_matches_rsirs_flat_as_documented(cal):
