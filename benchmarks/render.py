@@ -261,7 +261,7 @@ def _budget(rnd, sc):
     K = noise.keyframes_per_window(W, sc.profile.interval_s, float(rcfg["keyframe_rate_hz"]))
     rs = rnd.rate_scale()
     if hasattr(noise, "pilot_budget"):
-        b, _ = noise.pilot_budget(rnd, sc, W, K, rs)
+        b, _ = noise.pilot_budget(rnd, sc, W, K, rs, dark_e=noise.dark_current_mean_e(sc.profile))
         return b["spp"], b, W, K, "new"
     # the budget of the version before (render2spike/render/job.py at main 3e4f9e4), verbatim in effect
     from render2spike.render.photometry import to_physical
@@ -283,7 +283,7 @@ def _budget(rnd, sc):
 
 def m_noise(cfg):
     """Section 3 (and the per-frame part of 4): budget spp, achieved ratio, seconds per frame."""
-    from render2spike.render.noise import render_noise_ratio
+    from render2spike.render.noise import dark_current_mean_e, render_noise_ratio
     from render2spike.render.renderer import SceneRenderer
     _quiet()
     sc = _load(cfg["scene"], ["render.noise.max_spp=1024"] + list(cfg.get("sets", [])), lux=cfg["lux"])
@@ -295,7 +295,8 @@ def m_noise(cfg):
     ratios = []
     for ts in cfg.get("ratio_times", []):
         f = rnd.render_frame(ts, 77, spp)  # both versions: phi_var of the returned frame
-        ratios.append(render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, W, K))
+        ratios.append(render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, W, K,
+                                         dark_current_mean_e(sc.profile)))
     per_frame = None
     if cfg.get("wait_frames"):
         from sensor.io.frames import write_frame

@@ -46,7 +46,8 @@ from sensor.io.fileio import provenance
 from . import backend
 from .folder import FramesFolder
 from .launch import DEFAULT_LAUNCH, check_launch, launch_record, launch_taken, refusal_hint, resolve_launch
-from .noise import VERIFY_EVERY, keyframes_per_window, pilot_budget, render_noise_ratio, verify_ratios
+from .noise import (VERIFY_EVERY, dark_current_mean_e, keyframes_per_window, pilot_budget, render_noise_ratio,
+                    verify_ratios)
 from .scene import Scene
 from .source import FrameSource
 
@@ -151,7 +152,8 @@ def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log):
     # verification is there to check that choice on renders it did not see
     keep = rnd.keep_renders() if rcfg["spp"] != "auto" else contextlib.nullcontext()
     with keep:
-        budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rnd.rate_scale(), snap=rcfg["spp"] == "auto")
+        budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rnd.rate_scale(), snap=rcfg["spp"] == "auto",
+                                            dark_e=dark_current_mean_e(scene.profile))
     state = folder.state
     if "spp" in state and "noise_budget" in state:  # resuming: the frames already made fix the spp
         budget = state["noise_budget"]
@@ -194,7 +196,8 @@ class _Keyframes:
             ratio = float("nan")  # what render_noise_ratio gives without a variance
         else:
             rs = rnd.rate_scale()
-            ratio = render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, self.W, self.K)
+            ratio = render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, self.W, self.K,
+                                       dark_current_mean_e(scene.profile))
         if not (np.isfinite(f["phi"]).all() and np.isfinite(f["lux"]).all()):
             bad = ~np.isfinite(f["phi"]) | ~np.isfinite(f["lux"])
             r, c = (int(x) for x in np.argwhere(bad)[0])

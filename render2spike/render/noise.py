@@ -3,13 +3,16 @@
 Definitions (per pixel, rate in e-/interval)
 --------------------------------------------
 * ``r``: expected photoelectrons per interval; ``v``: the Monte Carlo variance
-  of its rendered estimate in one keyframe.
-* Over a reconstruction window of ``W`` intervals the photoelectron count has
-  shot-noise variance ``W r``. The sensor integrates the rate interpolated
+  of its rendered estimate in one keyframe; ``d``: the profile's dark current
+  as a charge [e-/interval] (``dark_current_e``, its mean over the pixels; zero
+  for a profile with dark events), whose electrons the pixel counts with the
+  light's and which have their own shot noise.
+* Over a reconstruction window of ``W`` intervals the electron count has
+  shot-noise variance ``W (r + d)``. The sensor integrates the rate interpolated
   between keyframes, so the render errors of the ``K = max(1, W T_r f_key)``
   keyframes in the window (base keyframe rate ``f_key``) add up independently:
   variance ``W^2 v / K``.
-* render-noise ratio ``rho = sqrt(W mean(v) / (K mean(r)))``: RMS render
+* render-noise ratio ``rho = sqrt(W mean(v) / (K mean(r + d)))``: RMS render
   error over RMS shot noise in the window, averaged over the image.
 * The spp is chosen so that ``rho <= target_ratio`` (default 0.2: render
   variance <= 4 % of shot-noise variance), clipped to [min_spp, max_spp];
@@ -80,9 +83,16 @@ def keyframes_per_window(window_intervals: int, interval_s: float, keyframe_rate
     return max(1.0, float(window_intervals) * float(interval_s) * float(keyframe_rate_hz))
 
 
-def render_noise_ratio(rate_e, rate_var, window_intervals: int, k_frames: float = 1.0) -> float:
-    """``sqrt(W mean(v) / (K mean(r)))`` for rate_e [e-/interval] and its MC variance; nan if dark or unknown."""
-    r = float(np.mean(rate_e))
+def dark_current_mean_e(profile) -> float:
+    """A profile's mean dark current as a charge [e-/interval] (0 with dark events): shot noise that the render
+    noise is held against beside the light's (``d`` above)."""
+    return float(np.mean(profile.dark_current_e, dtype=np.float64))
+
+
+def render_noise_ratio(rate_e, rate_var, window_intervals: int, k_frames: float = 1.0, dark_e: float = 0.0) -> float:
+    """``sqrt(W mean(v) / (K mean(r + d)))`` for rate_e [e-/interval], its MC variance and the dark current
+    ``dark_e`` [e-/interval]; nan if dark or unknown."""
+    r = float(np.mean(rate_e)) + float(dark_e)
     if not r > 0 or rate_var is None:
         return float("nan")
     return float(math.sqrt(window_intervals * float(np.mean(rate_var)) / (k_frames * r)))
@@ -274,14 +284,16 @@ def snap_to_measured(spp: int, measure, ratio_of, target_ratio: float, min_spp: 
     return s, seen
 
 
-def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float, snap: bool = True):
+def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float, snap: bool = True,
+                 dark_e: float = 0.0):
     """Pilot renders at t = 0 -> (budget dict, per-pixel variance function ``v_px(spp)`` in Phi units^2).
 
     ``rnd`` is a :class:`~.renderer.SceneRenderer`. Levels ``n1 = pilot_spp``, ``4 n1`` and, if the
     two-level answer exceeds ``4 n1``, ``16 n1`` (rounded up to exact sampler counts), each an
     independent pair of renders with seeds derived from the scene seed. ``snap``: check the answer on
     the sampler's own counts (:func:`snap_to_measured`); off when the spp is fixed by the user (the
-    budget is then only a record, and the snapping's pairs would be spent for nothing).
+    budget is then only a record, and the snapping's pairs would be spent for nothing). ``dark_e``: the
+    profile's mean dark current [e-/interval], added to the light in the shot noise (``r + d``).
     """
     from .photometry import to_physical
     rcfg = scene.render
@@ -310,7 +322,7 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
             exact)
     level(0, n1)
     level(1, exact(4 * n1))
-    rate = lambda: 0.5 * (pil[levels[-1]][0] + pil[levels[-1]][1]) * rate_scale  # noqa: E731
+    rate = lambda: 0.5 * (pil[levels[-1]][0] + pil[levels[-1]][1]) * rate_scale + dark_e  # noqa: E731
     budget = choose_spp_fit(rate(), fit_convergence(levels, var_means), *args)
     if budget["spp_needed"] > levels[-1]:  # extrapolating: measure one level further out
         level(2, exact(16 * n1))
@@ -335,6 +347,7 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     budget["model"] = {"form": "power laws between the measured pilot levels", "fit_A_over_n_B_over_n2":
                        fitted["model"], "alpha_at_pilot": model.alpha_local}
     budget["fit_candidate_spp"] = fitted["spp"]
+    budget["dark_e"] = float(dark_e)
     budget["pilot"] = {"spp": [int(n) for n in levels], "mean_var_rate_e2": var_means}
     near = min(levels, key=lambda n: abs(math.log(n / max(budget["spp"], 1))))
     v_near = pair_variance(*pil[near])

@@ -174,7 +174,7 @@ def test_snap_with_pair_noise_keeps_the_choice_and_the_ratio(z):
 def test_budget_prediction_matches_an_independent_measurement(write_scene, z):
     """A static textured scene: the pilot's predicted ratio (a pair at the chosen spp) and the ratio of an
     independent pair agree within z combined standard errors; the answer is within the band."""
-    from render2spike.render.noise import keyframes_per_window, pilot_budget, render_noise_ratio
+    from render2spike.render.noise import dark_current_mean_e, keyframes_per_window, pilot_budget, render_noise_ratio
     from render2spike.render.renderer import SceneRenderer
     from render2spike.render.scene import load_scene
     from tests.render.conftest import BASE
@@ -186,12 +186,26 @@ def test_budget_prediction_matches_an_independent_measurement(write_scene, z):
     W = int(sc.render["noise"]["window_intervals"])
     K = keyframes_per_window(W, sc.profile.interval_s, float(sc.render["keyframe_rate_hz"]))
     rs = r.rate_scale()
-    b, _ = pilot_budget(r, sc, W, K, rs)
+    d = dark_current_mean_e(sc.profile)
+    b, _ = pilot_budget(r, sc, W, K, rs, dark_e=d)
     assert not b["clipped"] and not b["at_min_spp"] and str(b["spp"]) in b["snapped"]
     assert r.effective_spp(b["spp"]) == b["spp"]
     assert BAND[0] * 0.2 <= b["predicted_ratio"] <= BAND[1] * 0.2
     f = r.render_frame(0.0, 12345, b["spp"])  # seeds unrelated to the pilot's
     x = f["phi_var"] * rs ** 2
-    measured = render_noise_ratio(f["phi"] * rs, x, W, K)
+    measured = render_noise_ratio(f["phi"] * rs, x, W, K, d)
     se = float(x.std(ddof=1) / np.sqrt(x.size) / x.mean()) / 2  # relative standard error of one ratio
     assert abs(measured / b["predicted_ratio"] - 1) <= z * math.sqrt(2) * se
+
+
+def test_the_dark_current_counts_as_shot_noise():
+    """rho = sqrt(W mean(v) / (K mean(r + d))): a profile's dark current as a charge adds its electrons' shot noise."""
+    import sensor
+    from render2spike.render.noise import dark_current_mean_e, render_noise_ratio
+    r, v = np.full((4, 5), 30.0), np.full((4, 5), 0.5)
+    assert render_noise_ratio(r, v, 64, 4.0) == pytest.approx(math.sqrt(64 * 0.5 / (4 * 30.0)), rel=1e-12)
+    assert render_noise_ratio(r, v, 64, 4.0, 90.0) == pytest.approx(math.sqrt(64 * 0.5 / (4 * 120.0)), rel=1e-12)
+    assert math.isnan(render_noise_ratio(np.zeros((2, 2)), np.zeros((2, 2)), 64, 4.0))
+    prof = sensor.SensorProfile.load("vidar-default")
+    assert dark_current_mean_e(prof) == pytest.approx(float(prof.dark_current_e.mean()), rel=1e-6)
+    assert dark_current_mean_e(sensor.SensorProfile.load("vidar-events")) == 0.0
