@@ -1,23 +1,35 @@
-"""Strong classic baseline: dead-time-corrected TFP smoothed by a Gaussian whose width suits the light level.
+"""Strong classic baseline: dead-time-corrected TFP over a window and smoothed by a Gaussian, both suiting the light.
 
-``tfp_dt_denoised``: the TFP spike rate over the window, its excess over each
-pixel's dark level smoothed by a Gaussian of standard deviation ``sigma``
-pixels (``scipy.ndimage.gaussian_filter``, reflecting edges; hot pixels left
-out, :func:`smooth_rate`), then dead-time corrected per pixel
-(:func:`recon.classic.deadtime_correct`, the inversion of
+``tfp_dt_denoised``: the TFP spike rate over a window of ``window``
+intervals, its excess over each pixel's dark level smoothed by a Gaussian of
+standard deviation ``sigma`` pixels (``scipy.ndimage.gaussian_filter``,
+reflecting edges; hot pixels left out, :func:`smooth_rate`), then dead-time
+corrected per pixel (:func:`recon.classic.deadtime_correct`, the inversion of
 :func:`recon.classic.tfp_deadtime`). Smoothing *before* the nonlinear
 inversion matters in dim scenes: inverting a pixel's few spikes first clips
-the dark-subtracted estimate at zero and biases every smoothed value upwards. The best ``sigma`` depends on how many spikes a pixel saw:
-few spikes (dim scenes) want a wide filter, many a narrow one. The shipped
-table ``recon/data/denoise_sigma.json`` gives the PSNR-optimal ``sigma`` as a
-function of the **mean spike count per pixel over the window** (``mean(TFP) *
-window``), chosen on *training* items only (``python -m recon.baselines
-tune``); at run time the count of the item itself selects ``sigma`` (linear
-interpolation in log count, clamped to the table's ends). No test item is
-looked at when choosing the widths.
+the dark-subtracted estimate at zero and biases every smoothed value upwards.
+
+The best ``window`` and ``sigma`` depend on how much light a pixel saw and on
+how fast the scene moves: few spikes (dim scenes) want a long window and a
+wide filter, many spikes a short window (less motion blur) and a narrow
+filter. The shipped table ``recon/data/denoise_sigma.json`` gives the
+PSNR-optimal pair (window, sigma) per light level, chosen jointly on a grid
+(:data:`WINDOW_GRID` x :data:`SIGMA_GRID`) on *training* items only
+(``python -m recon.baselines tune``). Its key is the **mean spike count per
+pixel over ``count_window`` intervals** (320; the mean TFP rate over the
+intervals the item offers, at most 320, times 320), so the key does not
+depend on the window chosen. At run time the item's own count selects the
+pair: the window of the level nearest in log count, and the width
+interpolated linearly in log count among the levels with that window
+(clamped to the table's ends). The window is capped at the intervals the
+caller offers (``window`` argument). No test item is looked at when choosing.
+Speed is not a key: an item does not say how fast it moves, so the tuner
+pools the training data's speeds at each light level. A table without
+``windows`` (format version 1) means window 320 at every level.
 
 Method names in ``render2spike evaluate`` / studies: ``tfp-dt-denoised``
-(table) and ``tfp-dt-denoised:SIGMA`` (a fixed width in pixels).
+(table: tuned window and width) and ``tfp-dt-denoised:SIGMA`` (a fixed width
+in pixels over the full window the data offer, 320 intervals by default).
 """
 
 from __future__ import annotations
@@ -40,6 +52,11 @@ SIGMA_TABLE_FILE = DATA_DIR / "denoise_sigma.json"
 TABLE_FORMAT = "render2spike-denoise-sigma"
 #: widths tried by the tuner [pixels] (0 = no filter)
 SIGMA_GRID = (0.0, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 11.0, 16.0)
+#: TFP windows tried by the tuner [intervals]
+WINDOW_GRID = (16, 32, 64, 128, 320)
+#: window [intervals] of a table that names none (format version 1), and the span of the light key
+DEFAULT_WINDOW = 320
+COUNT_WINDOW = 320
 
 
 def gaussian_denoise(img, sigma: float) -> np.ndarray:
@@ -58,8 +75,23 @@ def mean_count(spikes, window: int | None = None, center: int | None = None) -> 
     return float(tfp(s, window, center).mean()) * (stop - start)
 
 
+def light_count(spikes, window: int | None = None, center: int | None = None,
+                count_window: int = COUNT_WINDOW) -> float:
+    """The table's light key: mean TFP rate per pixel over the centred ``window`` times ``count_window``.
+
+    The mean spike count per pixel a window of ``count_window`` intervals would
+    see at the rate measured over the offered window; equal to
+    :func:`mean_count` when ``window == count_window``.
+    """
+    return float(tfp(spikes, window, center).mean()) * float(count_window)
+
+
 def load_sigma_table(path=None) -> dict:
-    """The sigma table: dict with ``counts`` and ``sigmas`` (ascending counts) and how it was made."""
+    """The table: dict with ``counts``, ``sigmas``, ``windows`` (ascending counts) and how it was made.
+
+    A table without ``windows`` (version 1) gets :data:`DEFAULT_WINDOW` at every
+    level; without ``count_window``, :data:`COUNT_WINDOW`.
+    """
     path = Path(path) if path else SIGMA_TABLE_FILE
     if not path.is_file():
         raise InputError("denoising width table does not exist (make one with python -m recon.baselines tune)",
@@ -71,14 +103,39 @@ def load_sigma_table(path=None) -> dict:
     if d.get("format") != TABLE_FORMAT or len(d.get("counts", [])) != len(d.get("sigmas", [])) \
             or not d.get("counts"):
         raise InputError(f"not a {TABLE_FORMAT} table with equal-length 'counts' and 'sigmas'", path=path)
+    if "windows" in d:
+        w = d["windows"]
+        if not isinstance(w, list) or len(w) != len(d["counts"]) \
+                or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in w):
+            raise InputError("'windows' must list one integer window >= 1 [intervals] per count", path=path)
+    else:
+        d["windows"] = [DEFAULT_WINDOW] * len(d["counts"])
+    cw = d.setdefault("count_window", COUNT_WINDOW)
+    if not isinstance(cw, int) or isinstance(cw, bool) or cw < 1:
+        raise InputError(f"'count_window' must be an integer >= 1 [intervals], got {cw!r}", path=path)
     return d
 
 
-def sigma_for_count(count: float, table: dict | None = None) -> float:
-    """PSNR-optimal width [pixels] for a mean count per pixel: interpolated in log count, clamped."""
+def window_sigma_for_count(count: float, table: dict | None = None) -> tuple[int, float]:
+    """PSNR-optimal (window [intervals], width [pixels]) for a light key (:func:`light_count`).
+
+    The window of the level nearest in log count; the width interpolated in log
+    count among the levels with that window, clamped to their ends. A table
+    without ``windows`` uses :data:`DEFAULT_WINDOW` everywhere (the width is then
+    interpolated over all levels).
+    """
     t = table or load_sigma_table()
     c = np.log(np.maximum(np.asarray(t["counts"], np.float64), 1e-6))
-    return float(np.interp(np.log(max(float(count), 1e-6)), c, np.asarray(t["sigmas"], np.float64)))
+    wins = np.asarray(t.get("windows") or [DEFAULT_WINDOW] * c.size, np.int64)
+    x = np.log(max(float(count), 1e-6))
+    win = int(wins[int(np.argmin(np.abs(c - x)))])
+    same = wins == win
+    return win, float(np.interp(x, c[same], np.asarray(t["sigmas"], np.float64)[same]))
+
+
+def sigma_for_count(count: float, table: dict | None = None) -> float:
+    """PSNR-optimal width [pixels] for a light key: the width of :func:`window_sigma_for_count`."""
+    return window_sigma_for_count(count, table)[1]
 
 
 def smooth_rate(rate, profile, sigma: float) -> np.ndarray:
@@ -106,15 +163,20 @@ def tfp_dt_denoised(spikes, profile, window: int | None = None, center: int | No
                     sigma: float | None = None, table: dict | None = None) -> np.ndarray:
     """The strong classic baseline: ``rate_e`` [e-/interval], float32 (H, W).
 
-    TFP over the window, :func:`smooth_rate` with ``sigma`` pixels, then
-    :func:`recon.classic.deadtime_correct` per pixel. ``sigma`` fixed, or
-    ``None``: chosen from the item's mean count with the tuned table
-    (:func:`sigma_for_count`).
+    TFP over a centred window, :func:`smooth_rate` with ``sigma`` pixels, then
+    :func:`recon.classic.deadtime_correct` per pixel. ``window``: the intervals
+    offered around ``center`` (default all). ``sigma`` fixed: TFP over all of
+    them. ``sigma=None``: window and width from the tuned table
+    (:func:`window_sigma_for_count` of the item's :func:`light_count` over the
+    offered window), the window capped at the offered one.
     """
-    r = tfp(spikes, window, center)
     if sigma is None:
-        sigma = sigma_for_count(mean_count(spikes, window, center), table)
-    return _denoised_from_rate(r, profile, sigma)
+        t = table or load_sigma_table()
+        win, sigma = window_sigma_for_count(
+            light_count(spikes, window, center, int(t.get("count_window", COUNT_WINDOW))), t)
+        start, stop = window_bounds(np.asarray(spikes).shape[0], window, center)
+        window = min(win, stop - start)
+    return _denoised_from_rate(tfp(spikes, window, center), profile, sigma)
 
 
 def _denoised_from_rate(r, profile, sigma: float) -> np.ndarray:
@@ -122,29 +184,54 @@ def _denoised_from_rate(r, profile, sigma: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------- tuning
+def _span(smp) -> int:
+    """The network-input length M of a sample [intervals] (the window the evaluation offers)."""
+    return smp.windows.shape[0] * int(smp.meta.get("window", 32))
+
+
 def tune_sigmas(samples, sigmas=SIGMA_GRID) -> tuple[float, dict]:
     """The width of ``sigmas`` with the best mean PSNR over ``samples`` (recon.datasets Samples with spikes).
 
     Returns (best sigma, {sigma: mean PSNR}). Uses the samples' own window (M).
     """
-    scores = {float(s): [] for s in sigmas}
-    for smp in samples:
-        M = smp.windows.shape[0] * int(smp.meta.get("window", 32))
-        r = tfp(smp.spikes, M, smp.center)
+    (_, best), scores = tune_window_sigma(samples, None, sigmas)
+    return best, {s: v for (_, s), v in scores.items()}
+
+
+def tune_window_sigma(samples, windows=WINDOW_GRID, sigmas=SIGMA_GRID) -> tuple[tuple[int, float], dict]:
+    """The (window, width) pair with the best mean PSNR over ``samples`` (Samples with spikes and a target).
+
+    ``windows`` [intervals]: those no longer than the shortest sample's span M
+    are tried (at least M itself); ``None``: each sample's own M only (reported
+    as window 0). Returns ((window, sigma), {(window, sigma): mean PSNR}); ties
+    go to the longer window and then the wider filter (the lower-variance choice).
+    """
+    spans = [_span(smp) for smp in samples]
+    if windows is None:
+        wins = [0]
+    else:
+        wins = sorted({int(w) for w in windows if int(w) <= min(spans)} or {min(spans)})
+    scores = {(w, float(s)): [] for w in wins for s in sigmas}
+    for smp, M in zip(samples, spans):
         th = np.float32(smp.profile.threshold_e)
-        for s in scores:
-            scores[s].append(psnr_ssim(_denoised_from_rate(r, smp.profile, s) / th, smp.target[0])[0])
-    mean = {s: float(np.mean(v)) for s, v in scores.items()}
-    return max(mean, key=mean.get), mean
+        for w in wins:
+            r = tfp(smp.spikes, w or M, smp.center)
+            for s in sigmas:
+                scores[(w, float(s))].append(psnr_ssim(_denoised_from_rate(r, smp.profile, float(s)) / th,
+                                                       smp.target[0])[0])
+    mean = {k: float(np.mean(v)) for k, v in scores.items()}
+    best = max(sorted(mean, reverse=True), key=mean.get)
+    return best, mean
 
 
 def tune_table(spec_texts, lux_levels, *, items: int = 8, seed: int = 0, sigmas=SIGMA_GRID,
-               progress: bool = True) -> dict:
-    """Tune the width per light level on the *training* split of data specs (davis / rendered kinds).
+               windows=WINDOW_GRID, progress: bool = True) -> dict:
+    """Tune the window and width per light level on the *training* split of data specs (davis / rendered kinds).
 
     For each ``lux`` every spec is built with ``split=train`` and ``lux=LUX`` (then read like test items:
-    centre crop, that light level), ``items`` items per spec are drawn (evenly spaced), the best width over
-    all of them found and keyed by their mean count.
+    centre crop, that light level), ``items`` items per spec are drawn (evenly spaced), the best (window,
+    width) pair over all of them found (:func:`tune_window_sigma`) and keyed by their mean
+    :func:`light_count` over their span M.
     """
     from tqdm import tqdm
 
@@ -160,41 +247,55 @@ def tune_table(spec_texts, lux_levels, *, items: int = 8, seed: int = 0, sigmas=
             ds.train = False  # fixed light level and centre crops; the items are still the training split's
             idx = np.unique(np.linspace(0, len(ds) - 1, min(items, len(ds))).round().astype(int))
             samples += [ds.sample(int(i)) for i in idx]
-        best, scores = tune_sigmas(samples, sigmas)
-        count = float(np.mean([mean_count(s.spikes, s.windows.shape[0] * int(s.meta.get("window", 32)), s.center)
-                               for s in samples]))
-        rows.append({"lux": float(lux), "mean_count": count, "sigma": best, "psnr_by_sigma": scores,
-                     "items": len(samples)})
+        (win, best), scores = tune_window_sigma(samples, windows, sigmas)
+        count = float(np.mean([light_count(s.spikes, _span(s), s.center) for s in samples]))
+        by = {}
+        for (w, s), v in scores.items():
+            by.setdefault(str(w), {})[str(s)] = v
+        rows.append({"lux": float(lux), "mean_count": count, "window": win, "sigma": best,
+                     "psnr_by_window_sigma": by, "items": len(samples)})
     rows.sort(key=lambda r: r["mean_count"])
-    return {"format": TABLE_FORMAT, "version": 1, "counts": [r["mean_count"] for r in rows],
-            "sigmas": [r["sigma"] for r in rows], "data": spec_texts, "split": "train", "seed": seed,
-            "sigma_grid": [float(s) for s in sigmas], "levels": rows,
-            "note": "sigma [pixels] of the Gaussian after dead-time-corrected TFP, by mean spike count per pixel "
-                    "over the window; chosen by mean PSNR on training items only",
+    return {"format": TABLE_FORMAT, "version": 2, "counts": [r["mean_count"] for r in rows],
+            "windows": [r["window"] for r in rows], "sigmas": [r["sigma"] for r in rows],
+            "count_window": COUNT_WINDOW, "data": spec_texts, "split": "train", "seed": seed,
+            "sigma_grid": [float(s) for s in sigmas], "window_grid": [int(w) for w in windows], "levels": rows,
+            "note": f"window [intervals] of the TFP and sigma [pixels] of the Gaussian before the dead-time "
+                    f"correction, by mean spike count per pixel over {COUNT_WINDOW} intervals (at the rate seen "
+                    f"over the item's span); chosen jointly by mean PSNR on training items only",
             "provenance": provenance()}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m recon.baselines",
-        description="Tune the Gaussian width of the tfp-dt-denoised baseline on a training split and write the "
-                    "table (count -> sigma).",
+        description="Tune the TFP window and Gaussian width of the tfp-dt-denoised baseline on a training split "
+                    "and write the table (count -> window, sigma).",
         epilog="example:\n  python -m recon.baselines tune --data davis:data/dvsynth:res=96x128 "
                "--lux 0.5,1,2,5,10,20,50,100,200,500 --out recon/data/denoise_sigma.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("tune", help="choose widths on a training split")
+    t = sub.add_parser("tune", help="choose windows and widths on a training split")
     t.add_argument("--data", required=True, action="append",
                    help="data spec, davis or rendered (its training split is used); repeatable")
     t.add_argument("--lux", required=True, help="comma-separated light levels [lux]")
     t.add_argument("--items", type=int, default=8, help="training items per light level")
+    t.add_argument("--windows", default=",".join(str(w) for w in WINDOW_GRID),
+                   help="comma-separated TFP windows to try [intervals] (those up to the data's span M)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--out", default=str(SIGMA_TABLE_FILE))
     a = ap.parse_args(argv)
-    table = tune_table(a.data, [float(v) for v in a.lux.split(",") if v.strip()], items=a.items, seed=a.seed)
+    try:
+        windows = [int(v) for v in a.windows.split(",") if v.strip()]
+    except ValueError:
+        ap.error(f"--windows: expected comma-separated integers, got '{a.windows}'")
+    if not windows or min(windows) < 1:
+        ap.error(f"--windows: expected integers >= 1, got '{a.windows}'")
+    table = tune_table(a.data, [float(v) for v in a.lux.split(",") if v.strip()], items=a.items, seed=a.seed,
+                       windows=windows)
     write_json_atomic(Path(a.out), table)
     for r in table["levels"]:
-        print(f"lux {r['lux']:8.3g}  mean count {r['mean_count']:9.3f}  sigma {r['sigma']:.2f}")
+        print(f"lux {r['lux']:8.3g}  mean count {r['mean_count']:9.3f}  window {r['window']:4d}  "
+              f"sigma {r['sigma']:.2f}")
     print(f"wrote {a.out}")
     return 0
 

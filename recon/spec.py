@@ -4,7 +4,7 @@
 
     KIND:PATH[,PATH...][:KEY=VALUE[:KEY=VALUE...]]
 
-``KIND`` is ``davis``, ``sdmd``, ``rendered`` or ``pairs``. After the first colon, the
+``KIND`` is ``davis``, ``sdmd``, ``rendered``, ``pairs`` or ``real`` (``evaluate`` only). After the first colon, the
 colon-separated tokens that look like ``key=value`` (key a known option) are
 options; the rest, rejoined with ``:``, is the comma-separated path list
 (``rendered`` takes several frames folders; ``davis`` and ``sdmd`` one root).
@@ -16,6 +16,7 @@ Examples::
     pairs:/data/spikezoo_test:height=250:width=400
     pairs:/data/uhsr_pairs:windows=10:window=20
     sdmd:/data/SDMD:split=test:profile=my-vidar.npz
+    real:data/real/uhsr.npz:clip=64
     rendered:runs/scene1/frames,runs/scene2/frames:crop=128x128:model=isi
 
 Options (all kinds)
@@ -50,6 +51,15 @@ frames folders, in order.
 250, 400, 0; per-scene meta.json overrides), ``split_file`` (default
 ROOT/split.json), ``layout`` (spike-file layout, default detected).
 
+``real`` (``render2spike evaluate`` only: the real-data score of
+:mod:`recon.realscore`, one spike file without a reference image; none of the
+options above): ``clip`` (intervals each method reconstructs from, default
+64), ``center`` (the clip's centre interval, default T // 2), ``reference``
+(``outside``: the intervals outside the clip, default; ``whole``: all),
+``profile`` (default: a uniform vidar-like sensor with the recording's own hot
+pixels), ``segments`` and ``alpha`` (stationarity tests, default 4, 0.01),
+``layout``, ``height``, ``width``, ``drop_columns`` (spike-file reading).
+
 ``pairs`` (Spike-Zoo style: ``ROOT/spike/NAME.dat|.npz`` + ``ROOT/gt/NAME.png``,
 or side by side): ``height``, ``width``, ``drop_columns``, ``layout``,
 ``split_file`` (default: every pair is an item).
@@ -61,7 +71,7 @@ from dataclasses import dataclass, field
 
 from sensor.errors import InputError, UnknownMethodError
 
-KINDS = ("davis", "sdmd", "rendered", "pairs")
+KINDS = ("davis", "sdmd", "rendered", "pairs", "real")
 COMMON = {"split": str, "profile": str, "model": str, "seed": int, "intervals": int, "warmup": int,
           "max_items": int, "crop": "hw", "windows": int, "window": int, "start": str}
 PER_KIND = {
@@ -71,6 +81,9 @@ PER_KIND = {
     "sdmd": {"height": int, "width": int, "drop_columns": int, "split_file": str, "layout": str},
     "pairs": {"height": int, "width": int, "drop_columns": int, "split_file": str, "layout": str},
 }
+#: options of ``real`` (no COMMON option applies: nothing is simulated and there is no split)
+REAL_OPTIONS = {"clip": int, "center": int, "reference": str, "profile": str, "segments": int, "alpha": float,
+                "layout": str, "height": int, "width": int, "drop_columns": int}
 
 
 @dataclass
@@ -107,7 +120,7 @@ def parse_data_spec(text: str) -> DataSpec:
     kind = kind.strip().lower()
     if kind not in KINDS:
         raise UnknownMethodError("data kind", kind, KINDS)
-    valid = dict(COMMON, **PER_KIND[kind])
+    valid = dict(REAL_OPTIONS) if kind == "real" else dict(COMMON, **PER_KIND[kind])
     opts, path_tokens = {}, []
     for tok in rest.split(":"):
         key, sep, value = tok.partition("=")
@@ -133,6 +146,9 @@ def build_dataset(spec: DataSpec | str, *, split: str | None = None, model: str 
     from . import datasets as D
     if isinstance(spec, str):
         spec = parse_data_spec(spec)
+    if spec.kind == "real":
+        raise InputError("real data have no reference image: only render2spike evaluate scores them "
+                         "(the real-data score); use recon.realscore.load_real", field="--data")
     o = dict(spec.options)
     common = dict(model=o.pop("model", model or "elssim"), seed=o.pop("seed", 0 if seed is None else seed),
                   n_windows=o.pop("windows", 10), window=o.pop("window", 32), start=o.pop("start", "phase"),

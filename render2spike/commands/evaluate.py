@@ -8,6 +8,7 @@ EXAMPLES = """\
 examples:
   render2spike evaluate --data davis:data/dvsynth:res=96x128 --methods tfp,tfp:4000,tfi,tfp-dt --out runs/eval
   render2spike evaluate --data rendered:out/demo/frames --methods tfp,rsir:runs/x/model.pt=RSIR --out runs/eval2
+  render2spike evaluate --data real:rec.npz:clip=64 --methods tfp,tfp-dt,tfp-dt-denoised --out runs/eval-real
 """
 
 
@@ -22,7 +23,9 @@ def register(subparsers) -> None:
                     "and summary.json.",
         epilog=EXAMPLES, formatter_class=HelpFormatter)
     p.add_argument("--data", required=True,
-                   help="data spec KIND:PATH[,PATH...][:key=value...] (split=test by default; see docs/recon.md)")
+                   help="data spec KIND:PATH[,PATH...][:key=value...] (split=test by default; see docs/recon.md); "
+                        "real:FILE[:clip=64][:reference=outside|whole][:profile=P]: the real-data score of a "
+                        "recording without a reference image (stationary pixels against their long-window rate)")
     p.add_argument("--methods", default="tfp,tfi,tfp-dt,tfp-dt-denoised",
                    help="comma-separated: tfp, tfp:N, tfi, tfp-dt, tfp-dt-denoised (the strong classic baseline: "
                         "width tuned per light level on training data), tfp-dt-denoised:SIGMA, rsir:CKPT[=LABEL]")
@@ -45,6 +48,13 @@ def run(args) -> int:
     check_output(args.out, overwrite=args.overwrite, folder=True)
     methods = parse_methods(args.methods)
     spec = parse_data_spec(args.data)
+    if spec.kind == "real":
+        from recon.realscore import evaluate_real, load_real_spec, print_real_summary
+        data = load_real_spec(spec)
+        if any(m.kind == "rsir" for m in methods):
+            load_models(methods, args.device)
+        print_real_summary(evaluate_real(data, methods, args.out, data_label=args.data), args.out)
+        return 0
     ds = build_dataset(spec, split="test", model=args.noise_model, seed=args.seed, include_spikes=True)
     if any(m.kind == "rsir" for m in methods):
         load_models(methods, args.device)

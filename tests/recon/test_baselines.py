@@ -91,3 +91,92 @@ def test_evaluate_method_names_and_application():
     np.testing.assert_allclose(fixed, tfp_dt_denoised(s.spikes, s.profile, 320, s.center, sigma=1.5)
                                / s.profile.threshold_e)
     assert apply_method(ms[0], s).shape == (16, 16)
+
+
+def test_tables_without_windows_load_as_window_320(tmp_path):
+    """The version-1 table format (no windows) still loads: window 320 everywhere, widths interpolated as before."""
+    from recon.baselines import COUNT_WINDOW, DEFAULT_WINDOW, window_sigma_for_count
+    shipped = load_sigma_table()
+    assert len(shipped["windows"]) == len(shipped["counts"]) and shipped["count_window"] == COUNT_WINDOW
+    old = tmp_path / "v1.json"
+    old.write_text(json.dumps({"format": "render2spike-denoise-sigma", "version": 1, "counts": [1.0, 100.0],
+                               "sigmas": [4.0, 0.0]}))
+    t = load_sigma_table(old)
+    assert t["windows"] == [DEFAULT_WINDOW] * 2 == [320, 320] and t["count_window"] == 320
+    assert window_sigma_for_count(10.0, t) == (320, pytest.approx(2.0))
+    bad = tmp_path / "bad_windows.json"
+    bad.write_text(json.dumps({"format": "render2spike-denoise-sigma", "counts": [1.0, 2.0], "sigmas": [1.0, 0.0],
+                               "windows": [320]}))
+    with pytest.raises(InputError, match="windows"):
+        load_sigma_table(bad)
+
+
+def test_window_sigma_for_count_nearest_window_and_width_within_it():
+    from recon.baselines import window_sigma_for_count
+    t = {"counts": [1.0, 10.0, 100.0, 1000.0], "windows": [320, 320, 32, 16], "sigmas": [4.0, 2.0, 1.0, 0.0]}
+    assert window_sigma_for_count(0.1, t) == (320, 4.0)
+    assert window_sigma_for_count(np.sqrt(10.0), t) == (320, pytest.approx(3.0))  # between the two 320 levels
+    assert window_sigma_for_count(20.0, t) == (320, 2.0)  # nearer 10 than 100 in log count; clamped within 320
+    assert window_sigma_for_count(60.0, t) == (32, 1.0)
+    assert window_sigma_for_count(1e5, t) == (16, 0.0)
+
+
+def test_tuned_window_is_used_and_capped_and_the_fixed_form_keeps_the_full_window():
+    from recon.baselines import light_count
+    s = _flat_sample(40.0, 7, size=16)
+    key = light_count(s.spikes, 320, s.center)
+    assert key == pytest.approx(mean_count(s.spikes, 320, s.center))  # over 320 intervals: the old key
+    t = {"counts": [key / 10, key * 10], "windows": [64, 64], "sigmas": [1.0, 1.0], "count_window": 320}
+    np.testing.assert_array_equal(tfp_dt_denoised(s.spikes, s.profile, 320, s.center, table=t),
+                                  tfp_dt_denoised(s.spikes, s.profile, 64, s.center, sigma=1.0))
+    # offered fewer intervals than the table's window: capped (and the key measured over what is offered)
+    np.testing.assert_array_equal(tfp_dt_denoised(s.spikes, s.profile, 40, s.center, table=t),
+                                  tfp_dt_denoised(s.spikes, s.profile, 40, s.center, sigma=1.0))
+    # evaluate's tfp-dt-denoised:S: the fixed width over the whole M = 320 window
+    m = parse_methods("tfp-dt-denoised:1")[0]
+    np.testing.assert_allclose(apply_method(m, s) * s.profile.threshold_e,
+                               tfp_dt_denoised(s.spikes, s.profile, 320, s.center, sigma=1.0), rtol=1e-6)
+
+
+def _flash_sample(seed, size=16, T=320, level=0.3):
+    """Bright for the 16 intervals around the centre, dim before and after: only a short window sees the centre."""
+    prof = uniform_profile(size, size)
+    th = prof.threshold_e
+    rate = np.full((T + 64, size, size), 0.2 * level * th, np.float32)
+    c = 64 + T // 2
+    rate[c - 8:c + 8] = level * th
+    u = np.random.default_rng(200 + seed).uniform(0.0, 1.0, (size, size))
+    rate[:64] = (u * th / 64).astype(np.float32)
+    spikes = simulate(rate, prof, "elssim", seed=seed)[64:]
+    return Sample(windows=np.zeros((10, size, size), np.float32),
+                  target=np.full((1, size, size), level, np.float32), maps=np.zeros((2, size, size)),
+                  spikes=spikes, center=T // 2, profile=prof, meta={"window": T // 10})
+
+
+def test_tune_window_sigma_picks_short_windows_for_change_and_long_ones_for_dim_still_scenes():
+    from recon.baselines import tune_window_sigma
+    (w, _), scores = tune_window_sigma([_flash_sample(s) for s in (1, 2)], (16, 64, 320), (0.0, 1.0))
+    assert w == 16 and scores[(16, 0.0)] > scores[(320, 0.0)] + 6.0  # the long windows average the dim part in
+    lam = 0.02 * uniform_profile(1, 1).threshold_e
+    (w, sig), _ = tune_window_sigma([_flat_sample(lam, s) for s in (1, 2)], (16, 64, 320), (0.0, 4.0))
+    assert (w, sig) == (320, 4.0)  # a dim still scene: the longest window and the wide filter
+    # windows longer than the samples' span are not tried
+    (w, _), scores = tune_window_sigma([_flat_sample(lam, 1, T=200)], (16, 640), (0.0,))
+    assert {k[0] for k in scores} == {16}
+
+
+def test_tune_command_writes_a_window_table(tmp_path):
+    from recon.baselines import load_sigma_table as load
+    from recon.baselines import main
+    from recon.synth import make_davis_like
+    root = make_davis_like(tmp_path / "davis", ["tr-a", "te-a"], n_frames=3, size=(8, 8), seed=4)
+    split = tmp_path / "split.json"
+    split.write_text(json.dumps({"train": ["tr-a"], "test": ["te-a"]}))
+    out = tmp_path / "table.json"
+    spec = f"davis:{root}:split_file={split}:res=8x8:warmup=8:frame_stride=2"
+    assert main(["tune", "--data", spec, "--lux", "5,500", "--items", "1", "--windows", "32,320",
+                 "--out", str(out)]) == 0
+    t = load(out)
+    assert t["version"] == 2 and t["split"] == "train" and set(t["windows"]) <= {32, 320}
+    assert t["counts"] == sorted(t["counts"]) and len(t["levels"]) == 2
+    assert set(t["levels"][0]["psnr_by_window_sigma"]) == {"32", "320"}
