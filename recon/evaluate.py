@@ -23,6 +23,11 @@ Reference and reconstruction are both divided by the reference's white level
 largest odd window that fits) use ``data_range = 1`` on these
 linear values. No per-method gain or offset is fitted. Scores are averaged
 over the items.
+
+A real recording without a reference image (``--data real:FILE``) is scored
+by :mod:`recon.realscore` instead: stationary pixels against their
+dead-time-corrected rate outside the clip, at each method's best-fit gain,
+with the reference's own noise floor.
 """
 
 from __future__ import annotations
