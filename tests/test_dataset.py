@@ -76,13 +76,20 @@ def test_killed_run_resumes_without_redoing_finished_samples(frames, tmp_path):
 
 
 def test_failures_are_retried_then_reported(frames, tmp_path):
-    res = build_dataset(_spec(frames, models=["elssim"], seeds=[0], lux=[5], scenes=[
-        {"frames": str(frames), "profile": "no-such-profile"}]), tmp_path, workers=0, retries=1, progress=False,
-        log=lambda *a: None)
-    assert res.n_done == 0 and len(res.failed) == 1 and "no-such-profile" in res.failed[0]["error"]
-    rec = next(iter(json.loads((tmp_path / "manifest.json").read_text())["samples"].values()))
+    import shutil
+    broken = tmp_path / "broken"
+    shutil.copytree(frames, broken)
+    exr = sorted(broken.glob("*.exr"))[3]
+    exr.write_bytes(exr.read_bytes()[:100])  # the spec checks pass; reading this frame fails in the sample
+    res = build_dataset(_spec(broken, models=["elssim"], seeds=[0], lux=[5]), tmp_path / "out", workers=0, retries=1,
+                        progress=False, log=lambda *a: None)
+    assert res.n_done == 0 and len(res.failed) == 1 and exr.name in res.failed[0]["error"]
+    man = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    rec = next(iter(man["samples"].values()))
     assert rec["status"] == "failed" and rec["attempts"] == 2
-    assert "Failed samples" in (tmp_path / "summary.md").read_text()
+    assert (man["n_done"], man["n_failed"], man["n_pending"]) == (0, 1, 0)
+    assert not list((tmp_path / "out" / "samples").iterdir())
+    assert "Failed samples" in (tmp_path / "out" / "summary.md").read_text()
 
 
 def test_samples_hold_truth_and_train_reads_the_folder(frames, tmp_path):
