@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import hashlib
 import io
 import itertools
@@ -66,13 +67,14 @@ import threading
 import time
 import uuid
 import zipfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
 from sensor.errors import DependencyError, InputError, UnknownMethodError
-from sensor.io.fileio import atomic_path, package_version, provenance, write_json_atomic, write_text_atomic
+from sensor.io.fileio import (atomic_path, json_bytes, package_version, provenance, write_bytes_atomic,
+                             write_json_atomic, write_text_atomic)
 
 DATASET_FORMAT = "render2spike-dataset"
 DATASET_VERSION = 1
@@ -80,7 +82,7 @@ MANIFEST = "manifest.json"
 #: environment variable: SIGKILL this process after this many samples were recorded (to test resume)
 KILL_AFTER_ENV = "RENDER2SPIKE_DATASET_KILL_AFTER"
 #: the most samples one spec may plan (the manifest lists each)
-MAX_SAMPLES = 1_000_000
+MAX_SAMPLES = 100_000
 #: the most retries of a failed sample, and of LocalCluster worker processes
 MAX_RETRIES = 100
 MAX_WORKERS = 4 * max(os.cpu_count() or 1, 16)
@@ -370,19 +372,47 @@ def _check_values(spec: dict, path) -> None:
                              path=path, field=f"profiles.{j}")
 
 
+_ONE_OF_TEXT = {
+    "duration_s": "a number, a list of numbers or (mode: random) {uniform: [a, b]} or {log_uniform: [a, b]}",
+    "lux": "a number, a list of numbers or (mode: random) {uniform: [a, b]} or {log_uniform: [a, b]}",
+    "params": "a number, a list of numbers or (mode: random) {uniform: [a, b]} or {log_uniform: [a, b]}",
+    "profiles": "a name or a list of names", "models": "a name or a list of names",
+    "seeds": "a whole number >= 0 or a list of them",
+    "scenes": "a scene name or file, {scene: NAME, set: [KEY=VALUE, ...]} or {frames: DIR, profile: NAME}",
+}
+
+
+def _spec_error(err):
+    """(message, field) of a jsonschema error; for a value that fits none of a key's forms, the problem within
+    the form it comes closest to (the form of its type with the fewest problems), else what the forms are."""
+    from render2spike.render.scene import _describe, _error_path
+    if err.validator == "oneOf" and err.context:
+        branches = {}
+        for sub in err.context:
+            branches.setdefault(sub.schema_path[0], []).append(sub)
+        fitting = [b for b in branches.values() if not any(e.validator == "type" and not e.relative_path for e in b)]
+        if fitting:
+            best = min(fitting, key=len)
+            sub = max(best, key=lambda e: len(e.relative_path))
+            return _describe(sub), _error_path(sub)
+        where = _error_path(err)
+        top = where.split(".")[0]
+        if top in _ONE_OF_TEXT:
+            return f"expected {_ONE_OF_TEXT[top]}, got {err.instance!r}", where
+    return _describe(err), _error_path(err)
+
+
 def validate_spec(spec: dict, path=None) -> None:
     """jsonschema check of a dataset spec; errors name the key."""
     try:
         import jsonschema
     except ImportError as exc:  # pragma: no cover
         raise DependencyError("jsonschema is not installed: pip install jsonschema") from exc
-    from render2spike.render.scene import _describe, _error_path
     v = jsonschema.Draft202012Validator(SPEC_SCHEMA)
     errs = sorted(v.iter_errors(spec), key=lambda e: (len(list(e.absolute_path)), str(e.message)))
     if errs:
-        e = errs[-1] if errs[0].validator == "oneOf" and len(errs) > 1 else errs[0]
-        msg = _describe(e)
-        raise InputError(msg if len(msg) <= 300 else msg[:297] + "...", path=path, field=_error_path(e))
+        msg, where = _spec_error(errs[0])
+        raise InputError(msg if len(msg) <= 300 else msg[:297] + "...", path=path, field=where)
 
 
 def _values(v):
@@ -428,6 +458,9 @@ def _grid_axes(spec: dict) -> list[tuple[str, list]]:
         [(f"params.{k}", _values(v)) for k, v in sorted(spec["params"].items())] + \
         [("profiles", spec["profiles"]), ("models", spec["models"]), ("seeds", _values(seeds if seeds is not None
                                                                                         else 0))]
+
+
+_FIELDS = tuple(f.name for f in fields(SampleSpec))
 
 
 def describe_plan(spec: dict) -> tuple[int, str]:
@@ -499,11 +532,22 @@ def render_key(s: SampleSpec) -> str:
     return _load_source_scene(s).content_hash({"dataset_render": 1})
 
 
+@functools.lru_cache(maxsize=4096)
+def _json_text(x) -> str:
+    return json.dumps(x)
+
+
 def sample_id(s: SampleSpec, rkey: str) -> str:
-    """The sample's id: a hash of its render key and its own parameters (not its index or how it was listed)."""
-    d = {"lux": s.lux, "profile": s.profile, "model": s.model, "seed": s.seed, "window": s.window,
-         "centers": s.centers, "preroll": s.preroll}
-    return _hash({"render": rkey, "sample": d, "format": DATASET_VERSION})
+    """The sample's id: a hash of its render key and its own parameters (not its index or how it was listed).
+
+    The hash of ``{"format", "render", "sample": {centers, lux, model, preroll, profile, seed, window}}`` as
+    ``json.dumps(..., sort_keys=True)`` writes it, the text put together directly (a large plan has many).
+    """
+    lux = "null" if s.lux is None else repr(float(s.lux))
+    text = (f'{{"format": {DATASET_VERSION}, "render": {_json_text(rkey)}, "sample": {{"centers": {int(s.centers)}, '
+            f'"lux": {lux}, "model": {_json_text(s.model)}, "preroll": {int(s.preroll)}, '
+            f'"profile": {_json_text(s.profile)}, "seed": {int(s.seed)}, "window": {int(s.window)}}}}}')
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 # ------------------------------------------------------------------------------------------------ the check
@@ -626,8 +670,9 @@ def prepare(spec: dict, path=None, log=print) -> Plan:
     if n > MAX_SAMPLES:
         raise InputError(f"the spec makes {n:,} samples ({text.split(' = ')[-1]}); a dataset holds at most "
                          f"{MAX_SAMPLES:,} (its manifest lists each): split it into several specs", path=path,
-                         field="samples" if spec["mode"] == "random" else "scenes")
-    log(f"dataset: {text}")
+                         field="samples" if spec["mode"] == "random" else None)
+    if n > 1000:
+        log(f"dataset: planning {text}; checking every sample before anything renders")
     samples = plan(spec)
     src_keys = {}
     requests = []
@@ -644,9 +689,12 @@ def prepare(spec: dict, path=None, log=print) -> Plan:
         if renders.get(req) is None:
             renders[req] = _inspect_render(s, spec, path, cache)
     rinfo = [renders[req] for req in requests]
-    profiles, sensors = {}, set()
+    profiles, sensors, cam = {}, set(), {}
     for s, r in zip(samples, rinfo):
-        key = (r.shape, s.profile, json.dumps(r.camera_profile, sort_keys=True, default=str), s.model)
+        ck = cam.get(id(r))
+        if ck is None:
+            ck = cam[id(r)] = json.dumps(r.camera_profile, sort_keys=True, default=str)
+        key = (r.shape, s.profile, ck, s.model)
         if key not in sensors:
             _check_sensor(s, r, spec, path, profiles)
             sensors.add(key)
@@ -1028,8 +1076,7 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
     state = _folder_state(out, spec_hash, overwrite)
     _refuse_if_locked(out)
     fresh = state in ("new", "replace")
-    todo_now = sum(not (out / "samples" / sid / "sample.json").is_file() for sid in pl.ids) if not fresh \
-        else len(pl.ids)
+    todo_now = len(pl.ids) if fresh else len(set(pl.ids) - _done_ids(out))
     own_client = None
     if todo_now and client is None and not (workers == 0 and not scheduler):
         client = own_client = _client_for(scheduler, workers, resources, log)
@@ -1070,6 +1117,24 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
                 out.rmdir()  # only when empty: a folder this call made and left nothing in
 
 
+def _done_ids(out: Path) -> set:
+    """The ids of the finished samples in ``out`` (a folder ``samples/<id>/`` with its ``sample.json``)."""
+    root = os.path.join(out, "samples")
+    try:
+        with os.scandir(root) as it:
+            names = [e.name for e in it if not e.name.startswith(".") and e.is_dir()]
+    except OSError:
+        return set()
+    return {n for n in names if os.path.isfile(os.path.join(root, n, "sample.json"))}
+
+
+def _manifest_bytes(manifest: dict) -> bytes:
+    """The manifest as JSON: indented for a small dataset, compact (and fast to write) for a large one."""
+    if len(manifest["samples"]) <= 2000:
+        return json_bytes(manifest)
+    return (json.dumps(manifest, separators=(",", ":"), default=str) + "\n").encode("ascii")
+
+
 def _close(client) -> None:
     if client is None:
         return
@@ -1103,12 +1168,13 @@ def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, workers, sched
     (out / "samples").mkdir(parents=True, exist_ok=True)
     for stale in (out / "samples").glob(".tmp-*"):  # a killed run's half-written samples
         shutil.rmtree(stale, ignore_errors=True)
+    on_disk = _done_ids(out)
     records = {}
     for s, sid, rk in zip(samples, sids, rk_of):
         prev = old.get(sid)
-        rec = {"index": s.index, "render_key": rk, "params": asdict(s), "status": "pending",
+        rec = {"index": s.index, "render_key": rk, "params": {k: getattr(s, k) for k in _FIELDS}, "status": "pending",
                "attempts": int(prev.get("attempts", 0)) if isinstance(prev, dict) else 0}
-        if (out / "samples" / sid / "sample.json").is_file():
+        if sid in on_disk:
             rec["status"] = "done"
             rec["seconds"] = prev.get("seconds") if isinstance(prev, dict) else None
         records[sid] = rec
@@ -1124,16 +1190,16 @@ def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, workers, sched
         if not force and now - last_save[0] < 20 * last_save[1]:
             return
         if force:  # the last word: statuses as the disk has them
+            done = _done_ids(out)
             for sid, rec in records.items():
-                on_disk = (out / "samples" / sid / "sample.json").is_file()
-                if on_disk and rec["status"] != "done":
+                if sid in done and rec["status"] != "done":
                     rec["status"] = "done"
                     rec.pop("error", None)
-                elif not on_disk and rec["status"] == "done":
+                elif sid not in done and rec["status"] == "done":
                     rec["status"] = "pending"
         for key in ("done", "failed", "pending"):
             manifest[f"n_{key}"] = sum(r["status"] == key for r in records.values())
-        write_json_atomic(out / MANIFEST, manifest)
+        write_bytes_atomic(out / MANIFEST, _manifest_bytes(manifest))
         last_save[:] = [time.monotonic(), time.monotonic() - now]
 
     save(force=True)
