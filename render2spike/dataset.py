@@ -707,8 +707,13 @@ def prepare(spec: dict, path=None, log=print) -> Plan:
             if spec["mode"] == "random":
                 raise InputError(f"draws {j} and {s.index} give the same sample: draw from ranges "
                                  "({uniform: [a, b]}), from longer lists, or fewer samples", path=path, field="samples")
-            raise InputError(f"samples {j} and {s.index} of the grid come out the same (two scene entries or "
-                             "overrides that give one scene): list each once", path=path, field="scenes")
+            src = [next(k for k, x in enumerate(spec["scenes"]) if x == t.source) for t in (samples[j], s)]
+            if src[0] != src[1]:
+                raise InputError(f"scenes.{src[0]} and scenes.{src[1]} give the same samples (the same frames or "
+                                 "scene once overrides apply, with the same sensor): list it once", path=path,
+                                 field=f"scenes.{src[1]}")
+            raise InputError(f"samples {j} and {s.index} of the grid come out the same (overrides that change "
+                             "nothing): list each value once", path=path, field=f"scenes.{src[1]}")
     n_renders = len(set(rkeys))
     return Plan(samples, rkeys, ids, n_renders, f"{text}; {n_renders} render(s)")
 
@@ -943,12 +948,12 @@ def _client_for(scheduler: str | None, workers: int | None, resources: dict | No
         level = quiet.level
         quiet.setLevel(logging.CRITICAL)  # a peer that is no scheduler makes Dask log (and raise) strange things
         try:
-            client = Client(address, timeout=f"{SCHEDULER_TIMEOUT_S}s")
-        except Exception as exc:  # noqa: BLE001 - whatever the peer answered, it is not a Dask scheduler
-            first = (str(exc).strip().splitlines() or [""])[0][:200]
-            raise InputError(f"{scheduler} accepts connections but did not answer as a Dask scheduler within "
-                             f"{SCHEDULER_TIMEOUT_S:g} s ({type(exc).__name__}{': ' + first if first else ''})",
-                             field="--scheduler") from None
+            _probe_scheduler(address, scheduler, SCHEDULER_TIMEOUT_S)
+            try:
+                client = Client(address, timeout=f"{SCHEDULER_TIMEOUT_S}s")
+            except Exception as exc:  # noqa: BLE001 - one line, not Dask's traceback
+                raise InputError(f"{scheduler} answered but the Dask client could not start "
+                                 f"({type(exc).__name__}: {_first_line(exc)})", field="--scheduler") from None
         finally:
             quiet.setLevel(level)
         _note_workers(client, resources, scheduler, log)
@@ -961,6 +966,52 @@ def _client_for(scheduler: str | None, workers: int | None, resources: dict | No
     except Exception as exc:  # noqa: BLE001 - one line, not Dask's traceback
         raise DependencyError(f"could not start a Dask cluster of {n} worker processes on this machine "
                               f"({type(exc).__name__}: {exc}); try --workers 0") from None
+
+
+def _first_line(exc) -> str:
+    return ((str(exc).strip().splitlines() or [""])[0])[:200]
+
+
+def _probe_scheduler(address: str, given: str, timeout_s: float) -> None:
+    """Ask ``address`` who it is (Dask's ``identity``), within ``timeout_s``: refuse a peer that does not answer,
+    answers in another protocol, or is not a scheduler. Runs in a thread of its own (with its own event loop)."""
+    import asyncio
+    import threading
+    from distributed.comm import connect
+
+    result = {}
+
+    async def ask():
+        comm = await connect(address, timeout=timeout_s)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    def run():
+        try:
+            result["reply"] = asyncio.run(asyncio.wait_for(ask(), timeout_s))
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            result["error"] = exc
+
+    t = threading.Thread(target=run, name="render2spike-scheduler-probe", daemon=True)
+    t.start()
+    t.join(timeout_s + 2.0)
+    exc = result.get("error")
+    if t.is_alive() or isinstance(exc, (asyncio.TimeoutError, TimeoutError)):
+        raise InputError(f"{given} accepts connections but did not answer as a Dask scheduler within {timeout_s:g} s",
+                         field="--scheduler")
+    if isinstance(exc, (MemoryError, OverflowError)):
+        raise InputError(f"{given} answered in another protocol: it is not a Dask scheduler", field="--scheduler")
+    if exc is not None:
+        raise InputError(f"{given} did not answer as a Dask scheduler ({type(exc).__name__}: {_first_line(exc)})",
+                         field="--scheduler")
+    reply = result.get("reply")
+    kind = reply.get("type") if isinstance(reply, dict) else None
+    if kind != "Scheduler":
+        raise InputError(f"{given} is not a Dask scheduler (it says it is {kind or repr(reply)[:60]}); give the "
+                         "scheduler's address", field="--scheduler")
 
 
 def _note_workers(client, resources, scheduler, log) -> None:
