@@ -936,26 +936,50 @@ def check_scheduler(address: str, timeout_s: float | None = None) -> str:
     return f"{scheme}://{rest}"
 
 
-def _client_for(scheduler: str | None, workers: int | None, resources: dict | None = None, log=print):
+def _dask():
     try:
-        from dask.distributed import Client, LocalCluster
+        import dask.distributed
     except ImportError as exc:
         raise DependencyError("datasets run on Dask: pip install 'dask[distributed]'") from exc
+    return dask.distributed
+
+
+@contextlib.contextmanager
+def _quiet_dask():
+    """Dask's own log lines muted (a peer that is no scheduler makes Dask log, and raise, strange things)."""
     import logging
+    quiet = logging.getLogger("distributed")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        quiet.setLevel(level)
+
+
+def scheduler_address(scheduler: str) -> str:
+    """The address of the Dask scheduler ``scheduler`` names, after checking that a scheduler answers there
+    (:func:`check_scheduler`, then Dask's ``identity``), each within :data:`SCHEDULER_TIMEOUT_S`."""
+    _dask()
+    address = check_scheduler(scheduler)
+    with _quiet_dask():
+        _probe_scheduler(address, scheduler, SCHEDULER_TIMEOUT_S)
+    return address
+
+
+def _client_for(scheduler: str | None, workers: int | None, resources: dict | None = None, log=print,
+                address: str | None = None):
+    """A Dask client: of the scheduler ``scheduler`` (at ``address`` when already checked), else of a new
+    LocalCluster of ``workers`` processes (default: one per CPU)."""
+    Client, LocalCluster = _dask().Client, _dask().LocalCluster
     if scheduler:
-        address = check_scheduler(scheduler)
-        quiet = logging.getLogger("distributed")
-        level = quiet.level
-        quiet.setLevel(logging.CRITICAL)  # a peer that is no scheduler makes Dask log (and raise) strange things
-        try:
-            _probe_scheduler(address, scheduler, SCHEDULER_TIMEOUT_S)
+        address = address or scheduler_address(scheduler)
+        with _quiet_dask():
             try:
                 client = Client(address, timeout=f"{SCHEDULER_TIMEOUT_S}s")
             except Exception as exc:  # noqa: BLE001 - one line, not Dask's traceback
                 raise InputError(f"{scheduler} answered but the Dask client could not start "
                                  f"({type(exc).__name__}: {_first_line(exc)})", field="--scheduler") from None
-        finally:
-            quiet.setLevel(level)
         _note_workers(client, resources, scheduler, log)
         return client
     n = int(workers) if workers else max(1, (os.cpu_count() or 1))
@@ -1128,15 +1152,18 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
     _refuse_if_locked(out)
     fresh = state in ("new", "replace")
     todo_now = len(pl.ids) if fresh else len(set(pl.ids) - _done_ids(out))
-    own_client = None
-    if todo_now and client is None and not (workers == 0 and not scheduler):
-        client = own_client = _client_for(scheduler, workers, resources, log)
+    address = scheduler_address(scheduler) if todo_now and client is None and scheduler else None
+    owned = []  # the client this call starts (under the lock, when there is something to make)
+
+    def make_client():
+        owned.append(_client_for(scheduler, workers, resources, log, address=address))
+        return owned[-1]
+
     created = not out.exists()
     lock = FolderLock(out, "a dataset run", log=log)
     try:
         lock.acquire()
     except BaseException:
-        _close(own_client)
         if created:
             with contextlib.suppress(OSError):
                 out.rmdir()
@@ -1146,13 +1173,13 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
         state = _folder_state(out, spec_hash, overwrite)  # again, now that no other run can change it
         if state == "replace":
             _clear_dataset(out)
-        res = _run(pl, spec, spec_path, spec_hash, out, client, workers, scheduler, retries, resources, progress,
-                   log, t0)
+        res = _run(pl, spec, spec_path, spec_hash, out, client, make_client, workers, scheduler, retries, resources,
+                   progress, log, t0)
         finished = True
         return res
     except BaseException:
-        _close(own_client)  # no task writes any more
-        own_client = None
+        while owned:
+            _close(owned.pop())  # no task writes any more
         with contextlib.suppress(OSError):
             if (out / "samples").is_dir():
                 for stale in (out / "samples").glob(".tmp-*"):
@@ -1161,7 +1188,8 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
                 _clear_dataset(out)  # a run stopped before it made anything leaves no manifest
         raise
     finally:
-        _close(own_client)
+        while owned:
+            _close(owned.pop())
         lock.release()  # after the clean-up above
         if created and not finished:
             with contextlib.suppress(OSError):
@@ -1205,8 +1233,8 @@ def _holds_results(out: Path) -> bool:
         (r.is_dir() and any(r.iterdir()))
 
 
-def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, workers, scheduler, retries, resources, progress,
-         log, t0) -> DatasetResult:
+def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, make_client, workers, scheduler, retries,
+         resources, progress, log, t0) -> DatasetResult:
     from tqdm import tqdm
     samples, sids, rk_of = pl.samples, pl.ids, pl.render_keys
     old = {}
@@ -1303,6 +1331,8 @@ def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, workers, sched
                     record(sid, error=last, attempts=retries + 1)
         elif todo:
             from dask.distributed import as_completed
+            if client is None:
+                client = make_client()
             rfut = {}
             futs = {}
             for s, sid, rk in todo:
