@@ -81,6 +81,9 @@ DATASET_VERSION = 1
 MANIFEST = "manifest.json"
 #: environment variable: SIGKILL this process after this many samples were recorded (to test resume)
 KILL_AFTER_ENV = "RENDER2SPIKE_DATASET_KILL_AFTER"
+#: the brightest light level a spec may ask for [lux] (direct sunlight: about 1e5 lux); far above it the
+#: scaled frames overflow float32
+MAX_LUX = 1e8
 #: the most samples one spec may plan (the manifest lists each)
 MAX_SAMPLES = 100_000
 #: the most retries of a failed sample, and of LocalCluster worker processes
@@ -317,13 +320,18 @@ def _number_text(x) -> str:
     return repr(x) if isinstance(x, float) else str(x)
 
 
-def _check_axis(value, path, key: str, positive: bool) -> None:
-    """One axis: finite numbers (> 0 where ``positive``), no value twice; ranges with low < high."""
-    need = "a finite number > 0" if positive else "a finite number"
+def _check_axis(value, path, key: str, positive: bool, most: float | None = None) -> None:
+    """One axis: finite numbers (> 0 where ``positive``, at most ``most``), no value twice; ranges with
+    low < high."""
+    need = ("a finite number > 0" if positive else "a finite number") + (f" and at most {most:g}" if most else "")
+
+    def bad(x) -> bool:
+        return not np.isfinite(x) or (positive and x <= 0) or (most is not None and x > most)
+
     if isinstance(value, dict):
         (kind, pair), = value.items()
         for j, x in enumerate(pair):
-            if not np.isfinite(x) or (positive and x <= 0):
+            if bad(x):
                 raise InputError(f"expected {need}, got {_number_text(x)}", path=path, field=f"{key}.{kind}.{j}")
         if not pair[0] < pair[1]:
             raise InputError(f"a range needs [low, high] with low < high, got {pair}", path=path,
@@ -332,7 +340,7 @@ def _check_axis(value, path, key: str, positive: bool) -> None:
     seen = {}
     for j, x in enumerate(_values(value)):
         where = f"{key}.{j}" if isinstance(value, list) else key
-        if not np.isfinite(x) or (positive and x <= 0):
+        if bad(x):
             raise InputError(f"expected {need}, got {_number_text(x)}", path=path, field=where)
         if float(x) in seen:
             raise InputError(f"{_number_text(x)} is listed twice ({key}.{seen[float(x)]}); list each value once",
@@ -344,7 +352,7 @@ def _check_values(spec: dict, path) -> None:
     """The axis values, overrides, parameter names and seeds of a spec with its defaults filled."""
     for key in ("duration_s", "lux"):
         if spec.get(key) is not None:
-            _check_axis(spec[key], path, key, positive=True)
+            _check_axis(spec[key], path, key, positive=True, most=MAX_LUX if key == "lux" else None)
     _check_sets(spec["set"], path, "set")
     set_keys = {str(s).partition("=")[0].strip() for s in spec["set"]}
     for k, v in spec["params"].items():
@@ -558,6 +566,7 @@ class _Render:
     key: str
     shape: tuple
     camera_profile: object  # the profile spec of the scene's camera / frames (str, dict or None)
+    span_s: float           # the time the frames span [s]
 
 
 @dataclass
@@ -615,8 +624,9 @@ def _inspect_render(s: SampleSpec, spec: dict, path, cache: dict) -> _Render:
         man_bytes = (Path(s.source["frames"]) / "frames.json").read_bytes()
         man = json.loads(man_bytes)
         key = "f" + _hash({"frames": man_bytes.hex()})[:15]
+        times = [float(f["time_s"]) for f in man["frames"]]
         return _Render(key, (int(man["height"]), int(man["width"])),
-                       s.source.get("profile") or (man.get("profile") or {}).get("spec"))
+                       s.source.get("profile") or (man.get("profile") or {}).get("spec"), max(times) - min(times))
     try:
         sc = _load_source_scene(s, cache)
     except Exception as exc:  # noqa: BLE001 - reported with the key that caused it
@@ -627,13 +637,15 @@ def _inspect_render(s: SampleSpec, spec: dict, path, cache: dict) -> _Render:
         raise InputError(f"a clip of {sc.duration_s!r} s is shorter than one interval of the camera "
                          f"({sc.profile.interval_s!r} s)", path=path, field=where)
     return _Render(sc.content_hash({"dataset_render": 1}), (sc.profile.height, sc.profile.width),
-                   sc.data["camera"]["profile"])
+                   sc.data["camera"]["profile"], sc.duration_s)
 
 
 def _check_sensor(s: SampleSpec, r: _Render, spec: dict, path, profiles: dict) -> None:
     """The sensor sample ``s`` simulates: its profile loads, covers the frames, and takes the model's reset."""
     from render2spike.render.scene import build_profile
     from sensor.models.spec import parse_model_spec
+    from sensor.profile import SensorProfile
+    from sensor.rates import n_intervals_spanned
     i = next(j for j, x in enumerate(spec["scenes"]) if x == s.source)
     if s.profile == "scene":
         where = f"scenes.{i}" + (".profile" if "frames" in s.source else "")
@@ -648,10 +660,14 @@ def _check_sensor(s: SampleSpec, r: _Render, spec: dict, path, profiles: dict) -
     pkey = json.dumps(base, sort_keys=True, default=str)
     try:
         if pkey not in profiles:
-            profiles[pkey] = build_profile(base)
+            profiles[pkey] = SensorProfile.load(base) if isinstance(base, str) else build_profile(base)
         prof = profiles[pkey].centred(*r.shape)
     except InputError as exc:
         raise InputError(str(exc), path=path, field=where) from None
+    n_intervals = n_intervals_spanned(0.0, r.span_s, prof.interval_s)
+    if s.centers > n_intervals:
+        raise InputError(f"{s.centers} window centres in a clip of {n_intervals} intervals (scenes.{i}); at most one "
+                         "per interval", path=path, field="centers")
     try:
         parse_model_spec(s.model).profile(prof)
     except (InputError, UnknownMethodError) as exc:
@@ -694,7 +710,7 @@ def prepare(spec: dict, path=None, log=print) -> Plan:
         ck = cam.get(id(r))
         if ck is None:
             ck = cam[id(r)] = json.dumps(r.camera_profile, sort_keys=True, default=str)
-        key = (r.shape, s.profile, ck, s.model)
+        key = (r.shape, s.profile, ck, s.model, r.span_s, s.centers)
         if key not in sensors:
             _check_sensor(s, r, spec, path, profiles)
             sensors.add(key)
@@ -985,8 +1001,10 @@ def _client_for(scheduler: str | None, workers: int | None, resources: dict | No
     n = int(workers) if workers else max(1, (os.cpu_count() or 1))
     extra = {"resources": resources} if resources else {}
     try:
+        import logging
+        # a failed sample is reported in the manifest and the summary; the workers' own log of it is muted
         return Client(LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   **extra))
+                                   silence_logs=logging.CRITICAL, **extra))
     except Exception as exc:  # noqa: BLE001 - one line, not Dask's traceback
         raise DependencyError(f"could not start a Dask cluster of {n} worker processes on this machine "
                               f"({type(exc).__name__}: {exc}); try --workers 0") from None

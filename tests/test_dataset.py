@@ -206,6 +206,9 @@ BAD_SPECS = [  # (change to the spec, the key the error must name, a word it mus
     ({"colour": "red"}, "(top level)", "colour"),
     ({"samples": 3}, "'samples'", "random"),
     ({"lux": list(range(1, 1001)), "seeds": list(range(1000))}, "", "2,000,000 samples"),
+    ({"lux": [1e300]}, "'lux.0'", "at most"),  # the scaled frames would overflow
+    ({"centers": 1000000}, "'centers'", "360 intervals"),
+    ({"scenes": [{"frames": "no/such/folder"}]}, "'scenes.0.frames'", "no frames.json"),
 ]
 
 
