@@ -1177,14 +1177,23 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
         owned.append(_client_for(scheduler, workers, resources, log, address=address))
         return owned[-1]
 
-    created = not out.exists()
+    made = [p for p in [out, *out.parents] if not p.exists()]  # the folders the lock will make (deepest first)
+    created = bool(made)
     lock = FolderLock(out, "a dataset run", log=log)
+
+    def remove_made():
+        for p in made:
+            with contextlib.suppress(OSError):
+                p.rmdir()  # only when empty
+
     try:
         lock.acquire()
+    except OSError as exc:
+        remove_made()
+        raise InputError(f"cannot make or lock the output folder ({exc.strerror or exc})", path=out,
+                         field="--out") from None
     except BaseException:
-        if created:
-            with contextlib.suppress(OSError):
-                out.rmdir()
+        remove_made()
         raise
     finished, state = False, None
     try:
@@ -1210,8 +1219,7 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
             _close(owned.pop())
         lock.release()  # after the clean-up above
         if created and not finished:
-            with contextlib.suppress(OSError):
-                out.rmdir()  # only when empty: a folder this call made and left nothing in
+            remove_made()  # only what is empty: the folders this call made and left nothing in
 
 
 def _done_ids(out: Path) -> set:

@@ -387,7 +387,7 @@ def test_another_spec_or_a_foreign_manifest_is_refused_unless_overwrite(cli, fra
 def test_an_interrupted_run_cleans_up_before_it_lets_go_of_the_lock(frames, tmp_path, monkeypatch):
     import render2spike.dataset as ds
     from sensor.io.lock import LOCK_NAME
-    out = tmp_path / "out"
+    out = tmp_path / "new" / "deep" / "out"
     seen = []
     real_clear = ds._clear_dataset
 
@@ -402,7 +402,15 @@ def test_an_interrupted_run_cleans_up_before_it_lets_go_of_the_lock(frames, tmp_
     monkeypatch.setattr(ds, "sample_task", interrupted)
     with pytest.raises(KeyboardInterrupt):
         build_dataset(_tiny(frames), out, workers=0, progress=False, log=lambda *a: None)
-    assert seen == [True] and not out.exists()
+    assert seen == [True] and not (tmp_path / "new").exists()  # nor the folders made for it
+
+
+def test_an_output_that_cannot_be_made_is_one_line(cli, frames, tmp_path):
+    (tmp_path / "file").write_text("x")
+    spec = _write_spec(tmp_path, frames, _tiny(frames))
+    _refused(cli, spec, tmp_path / "file" / "out", "--workers", "0", field="'--out'", contains=("cannot make",))
+    r = cli("dataset", spec, "--out", tmp_path / "file", "--quiet")
+    assert r.returncode == 2 and "not a folder" in r.stderr and (tmp_path / "file").read_text() == "x"
 
 
 def test_the_manifest_counts_what_is_on_disk(frames, tmp_path):
