@@ -50,6 +50,17 @@ samples on any number of workers.
 
 Failures are retried (``retries``), then recorded in the manifest and the
 summary with their error; never dropped silently.
+
+Checks, the folder, the lock
+----------------------------
+Before anything renders or any folder is made, :func:`load_spec` and
+:func:`prepare` check the whole spec (every axis value, duplicates, models,
+profiles, each scene variant loaded once with the scene-file validators,
+samples that would come out the same), :func:`check_run_options` the
+options, :func:`scheduler_address` the scheduler. The output folder is
+locked for the run (:class:`sensor.io.lock.FolderLock`); a dataset of another
+spec, a foreign ``manifest.json`` or other files are refused unless
+``overwrite``. docs/studies.md lists every check.
 """
 
 from __future__ import annotations
