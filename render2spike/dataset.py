@@ -695,7 +695,8 @@ def prepare(spec: dict, path=None, log=print) -> Plan:
     """
     n, text = describe_plan(spec)
     if n > MAX_SAMPLES:
-        raise InputError(f"the spec makes {n:,} samples ({text.split(' = ')[-1]}); a dataset holds at most "
+        axes = f" ({text.split(' = ', 1)[1]})" if " = " in text else ""
+        raise InputError(f"the spec makes {n:,} samples{axes}; a dataset holds at most "
                          f"{MAX_SAMPLES:,} (its manifest lists each): split it into several specs", path=path,
                          field="samples" if spec["mode"] == "random" else None)
     if n > 1000:
@@ -899,6 +900,8 @@ def check_run_options(workers=None, retries=2, resources=None, scheduler=None, c
     for k, v in (resources or {}).items():
         if not np.isfinite(v) or v <= 0:
             raise InputError(f"resource '{k}' needs a finite amount > 0, got {v!r}", field="--resources")
+    if scheduler is not None and not str(scheduler).strip():
+        raise InputError("expected a scheduler address (tcp://HOST:PORT), got ''", field="--scheduler")
     if scheduler is not None and workers is not None:
         raise InputError("--workers starts a cluster on this machine; with --scheduler the cluster's own workers "
                          "run the samples: give one of the two", field="--workers")
