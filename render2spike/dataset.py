@@ -321,6 +321,17 @@ def _check_frames_source(folder: Path, path, where: str) -> None:
         raise InputError(f"{man_path} is not a readable frames manifest ({exc})", path=path, field=where) from None
     if not isinstance(man, dict) or not isinstance(man.get("frames"), list) or len(man["frames"]) < 2:
         raise InputError(f"{man_path} lists fewer than two frames (a clip needs at least two)", path=path, field=where)
+    for key in ("height", "width"):
+        v = man.get(key)
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise InputError(f"{man_path}: '{key}' must be a whole number >= 1, got {v!r}", path=path, field=where)
+    for j, f in enumerate(man["frames"]):
+        t = f.get("time_s") if isinstance(f, dict) else None
+        if not isinstance(t, (int, float)) or isinstance(t, bool) or not np.isfinite(t):
+            raise InputError(f"{man_path}: frames.{j} has no finite time_s", path=path, field=where)
+    times = [float(f["time_s"]) for f in man["frames"]]
+    if max(times) <= min(times):
+        raise InputError(f"{man_path}: the frames span no time (every time_s is {times[0]!r})", path=path, field=where)
     lux = man.get("illuminance_lux", man.get("target_lux"))
     if not isinstance(lux, (int, float)) or isinstance(lux, bool) or not np.isfinite(lux) or lux <= 0:
         raise InputError(f"{man_path} does not say at which illuminance the frames were rendered "

@@ -435,3 +435,22 @@ def test_a_real_scheduler_is_accepted(cli, frames, tmp_path):
         r = cli("dataset", spec, "--out", tmp_path / "out", "--quiet", "--scheduler", lc.scheduler_address)
     assert r.returncode == 0, r.stderr
     assert json.loads((tmp_path / "out" / "manifest.json").read_text())["n_done"] == 1
+
+
+def test_frames_folders_with_a_broken_manifest_are_refused(cli, frames, tmp_path):
+    import shutil
+    cases = [(lambda m: m["frames"][0].pop("time_s"), "no finite time_s"), (lambda m: m.pop("height"), "'height'"),
+             (lambda m: [f.__setitem__("time_s", 0.0) for f in m["frames"]], "span no time"),
+             (lambda m: m.pop("illuminance_lux"), "illuminance"), (lambda m: m["frames"].__delitem__(slice(1, None)),
+                                                                  "fewer than two")]
+    for i, (change, word) in enumerate(cases):
+        d = tmp_path / f"frames{i}"
+        shutil.copytree(frames, d)
+        man = json.loads((d / "frames.json").read_text())
+        change(man)
+        (d / "frames.json").write_text(json.dumps(man))
+        _refused(cli, _write_spec(tmp_path, frames, _tiny(d)), tmp_path / "out", field="'scenes.0.frames'",
+                 contains=(word,))
+    (d / "frames.json").write_text("{not json")
+    _refused(cli, _write_spec(tmp_path, frames, _tiny(d)), tmp_path / "out", field="'scenes.0.frames'",
+             contains=("not a readable frames manifest",))
