@@ -21,6 +21,12 @@ parameters. DIR/manifest.json records each sample; rerunning the command skips
 finished samples (resume after a kill) and retries failed ones. Failures are
 listed in the manifest and DIR/summary.md, never dropped.
 
+The whole spec is checked before anything renders (every value, scene,
+profile and model; no value twice), and the plan is printed. DIR is locked
+while the command runs: a second run into it is refused, naming this one's
+pid and host. A DIR holding a dataset of another spec, or other files, is
+refused unless --overwrite (which makes the dataset afresh).
+
 Runs on Dask: a LocalCluster of --workers processes by default, an existing
 cluster with --scheduler tcp://HOST:8786, or in this process with --workers 0.
 Train on the result with `render2spike train --data rendered:DIR`.
@@ -48,20 +54,44 @@ def register(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("spec", metavar="SPEC.yaml", help="dataset spec (YAML or JSON)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (resumed when it exists)")
-    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler of an existing cluster (tcp://HOST:8786)")
-    p.add_argument("--workers", type=int, default=None,
-                   help="LocalCluster worker processes (default: one per CPU); 0: run here without Dask")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="Dask scheduler of an existing cluster (tcp://HOST:8786); checked before anything is made, "
+                        "with a connect timeout")
+    p.add_argument("--workers", type=_whole(0, "0 (run here, without Dask) or a number of worker processes"),
+                   default=None, help="LocalCluster worker processes (default: one per CPU); 0: run here without Dask")
     p.add_argument("--resources", metavar="NAME=N[,...]",
                    help="Dask resources every task claims, e.g. GPU=1 with workers started with --resources GPU=1 "
                         "(one task per GPU)")
-    p.add_argument("--retries", type=int, default=2, help="retries of a failed sample before it is reported")
+    p.add_argument("--retries", type=_whole(0, "a number of retries"), default=2,
+                   help="retries of a failed sample before it is reported (default: 2)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace what --out holds: a dataset of another spec, other files, or this spec's dataset "
+                        "(made afresh); without it such a folder is refused and a dataset of this spec is resumed")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
+def _whole(minimum: int, what: str):
+    """argparse type: a whole number >= ``minimum`` (one-line error naming what was expected)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} (a whole number >= {minimum}), got '{text}'") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected {what} (a whole number >= {minimum}), got {value}")
+        return value
+    return parse
+
+
 def run(args) -> int:
-    from render2spike.dataset import build_dataset, parse_resources
+    from render2spike.dataset import build_dataset, check_run_options, parse_resources
+    from sensor.errors import InputError
+    if not args.out.strip():
+        raise InputError("expected a folder name, got ''", field="--out")
+    resources = parse_resources(args.resources)
+    check_run_options(args.workers, args.retries, resources, args.scheduler)
     res = build_dataset(args.spec, args.out, scheduler=args.scheduler, workers=args.workers, retries=args.retries,
-                        resources=parse_resources(args.resources), progress=not args.quiet)
+                        resources=resources, progress=not args.quiet, overwrite=args.overwrite)
     print((res.out / "summary.md").read_text())
     return 1 if res.failed else 0

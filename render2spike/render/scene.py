@@ -329,7 +329,7 @@ def _sha_file(p: Path) -> str:
 
 
 def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float | None = None,
-               profile: str | None = None) -> Scene:
+               profile: str | None = None, cache: dict | None = None) -> Scene:
     """Read, override, validate and normalise a scene file.
 
     Parameters
@@ -337,14 +337,19 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
     scene : path or bundled name
     sets : list of "key=value" overrides (see :func:`apply_overrides`)
     lux, duration_s, profile : shortcuts for ``illuminance_lux``, ``duration_s``, ``camera.profile``.
+    cache : a dict kept by a caller that loads many variants of the same files (a dataset's plan): each
+        file is parsed and each sensor profile loaded once. The returned scenes share those profiles.
     """
     path = resolve_scene_path(scene)
+    key = ("scene-file", str(path))
     try:
-        raw = _yaml().safe_load(path.read_text())
+        raw = cache[key] if cache is not None and key in cache else _yaml().safe_load(path.read_text())
     except Exception as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         raise InputError(f"not valid YAML{where}: {getattr(exc, 'problem', exc)}", path=path) from exc
+    if cache is not None:
+        cache[key] = raw  # never modified: overrides and parameters work on copies
     if raw is None:
         raise InputError("the scene file is empty", path=path)
     if not isinstance(raw, dict):
@@ -389,7 +394,14 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
         raise InputError(f"adaptive.max_rate_hz ({r['adaptive']['max_rate_hz']}) must be >= keyframe_rate_hz "
                          f"({r['keyframe_rate_hz']})", path=path, field="render.adaptive.max_rate_hz")
     files = {}
-    sc = Scene(path=path, data=data, profile=build_profile(data["camera"]["profile"], path))
+    pkey = ("profile", json.dumps(data["camera"]["profile"], sort_keys=True, default=str))
+    if cache is not None and pkey in cache:
+        prof = cache[pkey]
+    else:
+        prof = build_profile(data["camera"]["profile"], path)
+        if cache is not None:
+            cache[pkey] = prof
+    sc = Scene(path=path, data=data, profile=prof)
     for i, o in enumerate(data["objects"]):
         where = f"objects.{i}"
         if o["shape"] == "mesh":
