@@ -240,7 +240,7 @@ def run_generalisation(a) -> int:
                                    baselines=a.baselines, reuse=a.reuse, steps=a.steps, batch_size=a.batch_size,
                                    size=a.size, width=a.width, crop=a.crop, test_fraction=a.test_fraction,
                                    profile=a.profile, seed=a.seed, threads=a.threads, workers=a.workers,
-                                   progress=not a.quiet)
+                                   overwrite=a.overwrite, progress=not a.quiet)
     print(Path(res["table"]).read_text())
     print("wrote " + ", ".join([res["table"], res["csv"], res["heatmap"]]))
     return 0

@@ -67,8 +67,10 @@ def _dataset(folders, model_spec, profile, crop, seed, warmup, stride=None, incl
 def run_generalisation_study(data, out, *, train_models=("ideal", "isi", "elssim"), test_models=None,
                              baselines="tfp-dt,tfp-dt-denoised", reuse=(), steps=200, batch_size=4, size="tiny", width=None,
                              crop=None, test_fraction=0.25, profile="vidar-default", seed=0, threads=None,
-                             workers=0, warmup=512, stride=64, progress=True, log=print) -> dict:
-    """Run the study (see the module docstring); writes matrix.csv, matrix.md, per_item.csv, heatmap.png."""
+                             workers=0, warmup=512, stride=64, overwrite=False, progress=True, log=print) -> dict:
+    """Run the study (see the module docstring); writes matrix.csv, matrix.md, per_item.csv, heatmap.png.
+
+    ``overwrite``: a dataset of another spec in ``out/data`` is made afresh (else refused)."""
     from recon.datasets import parse_hw
     from recon.evaluate import Method, apply_method, parse_methods, psnr_ssim
     from recon.nets import RSIRConfig, load_checkpoint
@@ -96,7 +98,7 @@ def run_generalisation_study(data, out, *, train_models=("ideal", "isi", "elssim
 
     spec, spec_path = load_spec(data)
     spec = dict(spec, models=["elssim"], seeds=[int(seed)])
-    res = build_dataset(spec, out / "data", workers=workers, progress=progress, log=log)
+    res = build_dataset(spec, out / "data", workers=workers, progress=progress, overwrite=overwrite, log=log)
     if res.failed:
         raise InputError(f"{len(res.failed)} data sample(s) failed (see {out / 'data' / 'summary.md'}); first: "
                          f"{res.failed[0]['error']}", field="--data")
