@@ -185,7 +185,7 @@ def light_variance(reset, x, k, mu, f, T, rate=None):
 
 
 # ----------------------------------------------------------------------------------------------------- reset
-def decide_reset(levels, normal, x_levels, theta, gain, mu, f):
+def decide_reset(levels, normal, x_levels, theta, gain, mu, f, use=None):
     """Reset decision from the lag-1 correlation of read-out ISIs.
 
     Interval reset: ISIs are i.i.d. (a discrete renewal process), so the pooled
@@ -198,13 +198,17 @@ def decide_reset(levels, normal, x_levels, theta, gain, mu, f):
     -RESET_Z``. Confidence: the posterior probability of the decision with equal
     priors from the Gaussian likelihoods of the two predictions on the mixed
     levels (where neither prediction is reliable, the one-sided p-value of the
-    interval reset alone).
+    interval reset alone). Levels where ``use`` (bool per level) is False (saturated, or no signal: their
+    ISIs say nothing of the reset) are left out.
     """
     mflat = normal.reshape(-1)
     per_level = []
     zs = []
     ll_i = ll_c = 0.0
-    for lv, x in zip(levels, x_levels):
+    for i, (lv, x) in enumerate(zip(levels, x_levels)):
+        if use is not None and not use[i]:
+            per_level.append(dict(rho=None, n_pairs=0, z=None, rho_crossing=None, skipped=True))
+            continue
         rho, npairs, npix = lv.lag1(mflat)
         if npairs < 10:
             per_level.append(dict(rho=rho, n_pairs=npairs, z=None, rho_crossing=None))
@@ -569,7 +573,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
         gain, gain_se, X = fit_gain(minus_dark(x, r_use, k)[0], var_x, nf)
         if reset is None and it == 0:
-            rt = decide_reset(levels, nf, list(x), theta, gain, mu, f)
+            rt = decide_reset(levels, nf, list(x), theta, gain, mu, f, use=signal)
             out.update(rt)
             decided = rt["reset"] or "interval"
             if rt["reset"] is None:
