@@ -81,7 +81,14 @@ class DataSpec:
     text: str = ""
 
 
+#: options that count something: at least this (everything else numeric must be finite and above 0)
+MINIMUM = {"intervals": 1, "warmup": 0, "max_items": 1, "windows": 1, "window": 1, "ipf": 1, "frame_stride": 1,
+           "stride": 1, "height": 1, "width": 1, "drop_columns": 0}
+
+
 def _convert(key, value, typ):
+    import math
+
     from .datasets import parse_hw
     try:
         if typ == "hw":
@@ -89,9 +96,21 @@ def _convert(key, value, typ):
         if typ == "range":
             if "-" in value.strip("-"):
                 lo, hi = value.split("-", 1)
-                return float(lo), float(hi)
-            return float(value)
-        return typ(value)
+                lo, hi = float(lo), float(hi)
+                if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+                    raise InputError(f"option '{key}': the range {value} must be LO-HI with 0 < LO <= HI (finite)",
+                                     field="--data")
+                return lo, hi
+            v = float(value)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"option '{key}' must be a finite number above 0; got {value}", field="--data")
+            return v
+        v = typ(value)
+        if typ is int and key in MINIMUM and v < MINIMUM[key]:
+            raise InputError(f"option '{key}' must be an integer >= {MINIMUM[key]}; got {value}", field="--data")
+        if typ is float and not (math.isfinite(v) and v > 0):
+            raise InputError(f"option '{key}' must be a finite number above 0; got {value}", field="--data")
+        return v
     except InputError:
         raise
     except ValueError:
