@@ -46,7 +46,7 @@ from sensor.io.bits import (PackedSpikes, count_bits, pack_dat_frames, pack_fram
 from sensor.io.container import (SPIKES_FORMAT, SPIKES_VERSION, STREAM_COMPRESSLEVEL, _container_meta,  # noqa: F401
                                  _member, _npz, read_spikes_meta, write_spikes)  # noqa: F401
 from sensor.io.dat import check_frame_dims, dat_frame_count, read_dat, write_dat  # noqa: F401
-from sensor.io.fileio import atomic_path, write_bytes_atomic  # noqa: F401
+from sensor.io.fileio import write_bytes_atomic
 from sensor.io.writer import SpikeWriter  # noqa: F401
 from sensor.units import INTERVAL_S
 
