@@ -199,13 +199,43 @@ def test_final_name_maps_temp_names_back():
     (["train", "--data", "davis:{d}/nowhere:lux=-3"], ["--data", "lux"]),
     (["evaluate", "--data", "davis:{d}/nowhere:windows=0"], ["--data", "windows"]),
     (["evaluate", "--data", "davis:{d}/nowhere", "--examples", "-1"], ["--examples"]),
+    (["realism", "{d}/dark0.dat", "--height", "8", "--width", "16", "--segments", "0"], ["--segments"]),
+    (["calibrate", "--dark", "{d}/dark0.dat", "--flat", "{d}/flat0.dat", "{d}/flat1.dat", "--base", "{d}/base.npz",
+      "--height", "8", "--width", "16", "--hot-threshold", "nan"], ["--hot-threshold"]),
 ])
 def test_out_of_range_options_are_refused_before_anything_is_written(cal, capsys, args, names):
     args = [a.format(d=cal) for a in args] + ["--out", str(cal / "out")]
     expect_refused(args, cal, capsys, *names)
 
 
+@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+def test_convert_refuses_an_interval_that_is_not_a_positive_time(cal, capsys, value):
+    expect_refused(["convert", cal / "dark0.dat", cal / "x.npz", "--height", H, "--width", W, "--interval-s", value],
+                   cal, capsys, "--interval-s")
+
+
 def test_run_refuses_a_clip_shorter_than_one_interval(tmp_path, capsys):
     expect_refused(["run", "rotating_disk", "--out", tmp_path / "o", "--duration", "1e-5"], tmp_path, capsys,
                    "duration_s", "shorter than one read-out interval")
     assert snapshot(tmp_path) == {}
+
+
+def test_calibrate_with_pixels_dark_at_a_flat_level_finishes():
+    """A dim, short flat where some pixels never fire carries no information there: it is weighted 0, and the
+    fit does not try to sum ~1 / x terms of their (zero) light."""
+    import time
+
+    from sensor.calibration.estimate import calibrate
+    prof = sensor.SensorProfile.synthetic(4, 8, threshold_e=10)
+    rng = np.random.default_rng(1)
+    d = rng.random((400, 4, 8)) < 0.005
+    d[0] = True  # every pixel has a dark event
+    flats = []
+    for p in (0.05, 0.1):
+        f = rng.random((400, 4, 8)) < p
+        f[:, :2] = False  # two rows never fire
+        flats.append(f)
+    t0 = time.perf_counter()
+    _, rep = calibrate([d], flats, base=prof, reset="interval")
+    assert time.perf_counter() - t0 < 60
+    assert np.isfinite(rep.numbers["prnu_std"])

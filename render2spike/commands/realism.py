@@ -109,6 +109,8 @@ def run(args) -> int:
         raise InputError("exists and is not a folder", path=out)
     if (out / "realism.json").exists() and not args.overwrite:
         raise InputError("already holds a realism report; pass --overwrite to replace it", path=out)
+    from render2spike.commands._common import check_numbers
+    check_numbers(args, at_least=dict(segments=2, fit_seeds=1, fit_pixels=1))
     if not 0 < args.alpha < 1:
         raise InputError(f"must be in (0, 1); got {args.alpha}", field="--alpha")
     specs = parse_models(args.models)

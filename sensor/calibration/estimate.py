@@ -316,6 +316,9 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     if len(flat) < 2:
         raise CalibrationError(f"need flat-field recordings at >= 2 brightness levels for the PRNU regression; got "
                                f"{len(flat)}", field="--flat")
+    if not (np.isfinite(hot_threshold) and hot_threshold > 0):
+        raise CalibrationError(f"theta_HT must be a finite number of spikes per interval above 0; got {hot_threshold}",
+                               field="--hot-threshold")
     if flat_lux is not None:
         lux = np.asarray(flat_lux, np.float64).reshape(-1)
         bad = [i for i, v in enumerate(lux) if not (np.isfinite(v) and v > 0)]

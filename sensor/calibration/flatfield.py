@@ -164,7 +164,21 @@ def light_variance(reset, x, k, mu, f, T, rate=None):
     window ends); ``Var(x) = Var(rate) / (d rate / d x)^2``. Returns (variance,
     count sd [spikes], d x / d mu_DC): the last propagates the dark-rate
     estimate's error, which all levels of a pixel share.
+
+    A pixel without light (``x <= 1e-9``: no spike at this level) carries no information: infinite variance,
+    count sd 0 (its exact moments would need ~1 / x terms: a dim, short flat must not stall the fit).
     """
+    x, k, mu, f = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (x, k, mu, f)))
+    dark = x <= 1e-9
+    if dark.any():
+        var = np.full(x.shape, np.inf)
+        sd = np.zeros(x.shape)
+        dxm = np.zeros(x.shape)
+        lit = ~dark
+        if lit.any():
+            r = None if rate is None else np.broadcast_to(np.asarray(rate, np.float64), x.shape)[lit]
+            var[lit], sd[lit], dxm[lit] = light_variance(reset, x[lit], k[lit], mu[lit], f[lit], T, r)
+        return var, sd, dxm
     m, v = readout_moments(reset, x, k, mu, f)
     var_n = T * v / m ** 3 + 1.0 / 6.0
     h = np.maximum(1e-3 * x, 1e-9)
