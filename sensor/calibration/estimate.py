@@ -399,16 +399,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
             raise CalibrationError(f"flat recording {i} holds no spike at all: a flat field is taken with light "
                                    "on the sensor; check the file, or leave it out", path=path, field="--flat")
         levels.append(flat_level_stats(s))
-        m = float(levels[-1].rate[normal].mean())
-        say(f"flat {i + 1}/{len(flat)}: mean spike rate {m:.4f} per interval")
-        if m >= SATURATED_FRACTION:
-            warn.append(f"{_name(x, 'flat', i)} is saturated (mean spike rate {m:.3f} per interval): not used for "
-                        "the PRNU, the reset decision or the threshold")
-        elif m <= 2 * median_p:
-            warn.append(f"{_name(x, 'flat', i)} has no signal above the dark rate (mean spike rate {m:.2e} per "
-                        f"interval, dark {median_p:.2e}): not used for the PRNU, the reset decision or the threshold")
-    for w in warn:
-        say("warning: " + w)
+        say(f"flat {i + 1}/{len(flat)}: mean spike rate {levels[-1].rate[normal].mean():.4f} per interval")
     flat_ints = [lv.T for lv in levels]
     # binomial variance of mu_DC = -ln(1 - p): Var(p) / (1 - p)^2
     var_mu = np.clip(p_normal, 1e-12, None) / (n_int * np.clip(1 - p_normal, 1e-12, None))
@@ -419,6 +410,12 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     else:
         fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
                         median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    for i, (x, why) in enumerate(zip(flat, fit["level_reason"])):  # levels the fit could not use at all
+        if why == "no signal" or why.startswith("saturated"):
+            what = "is saturated" if why.startswith("saturated") else "has no signal above the dark rate"
+            warn.append(f"{_name(x, 'flat', i)} {what} (mean spike rate {fit['level_mean_rate'][i]:.3g} per "
+                        "interval): not used for the PRNU, the reset decision or the threshold")
+            say("warning: " + warn[-1])
     theta_cal = float(fit["threshold_e"]) if fit.get("threshold_e") is not None and estimate_threshold else \
         float(base.threshold_e)
     gain_fit = np.clip(np.where(hot, 1.0, fit["gain"]), 0.05, None)

@@ -649,7 +649,8 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     out.update(reset=decided, gain=gain.reshape(shape), gain_se=gain_se.reshape(shape), x=x,
                level_light_thresholds=[float(v) for v in X], level_light_e=[float(v * theta) for v in X],
                level_information_share=[float(s) for s in share], level_used=[bool(u) for u in used],
-               level_reason=why, level_informative_pixel_fraction=[float(informative[l, nf].mean()) for l in range(K)])
+               level_reason=why, level_mean_rate=[float(r) for r in mean_rate],
+               level_informative_pixel_fraction=[float(informative[l, nf].mean()) for l in range(K)])
     g_spread = float(gain[nf].std())
     med_se = float(np.median(gain_se[nf]))
     out["prnu_enough"] = bool(med_se < 0.25 * max(g_spread, 1e-12))
