@@ -157,6 +157,10 @@ def build_dataset(spec: DataSpec | str, *, split: str | None = None, model: str 
                   n_windows=o.pop("windows", 10), window=o.pop("window", 32), start=o.pop("start", "phase"),
                   intervals=o.pop("intervals", None), warmup=o.pop("warmup", 64),
                   max_items=o.pop("max_items", None), include_spikes=include_spikes, implementation=implementation)
+    need = common["n_windows"] * common["window"]
+    if common["intervals"] is not None and common["intervals"] < need:
+        raise InputError(f"option 'intervals' ({common['intervals']}) must be >= windows x window "
+                         f"({common['n_windows']} x {common['window']} = {need}) in '{spec.text}'", field="--data")
     split = o.pop("split", split or "test")
     if spec.kind == "davis":
         return D.DavisDataset(spec.paths[0], split, **o, **common)

@@ -198,6 +198,7 @@ def test_final_name_maps_temp_names_back():
     (["train", "--data", "davis:{d}/nowhere:lux=50-5"], ["--data", "lux", "50-5"]),
     (["train", "--data", "davis:{d}/nowhere:lux=-3"], ["--data", "lux"]),
     (["evaluate", "--data", "davis:{d}/nowhere:windows=0"], ["--data", "windows"]),
+    (["evaluate", "--data", "davis:{d}/nowhere:intervals=5"], ["--data", "intervals", "320"]),
     (["evaluate", "--data", "davis:{d}/nowhere", "--examples", "-1"], ["--examples"]),
     (["realism", "{d}/dark0.dat", "--height", "8", "--width", "16", "--segments", "0"], ["--segments"]),
     (["calibrate", "--dark", "{d}/dark0.dat", "--flat", "{d}/flat0.dat", "{d}/flat1.dat", "--base", "{d}/base.npz",
