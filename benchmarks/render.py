@@ -314,7 +314,7 @@ def m_noise(cfg):
                     f = rnd.render_frame(ts, 5, spp)
                 write_frame(Path(d) / f"f{i}.exr", f["phi"].astype(np.float32), f["lux"].astype(np.float32), time_s=ts)
             per_frame = (time.perf_counter() - t) / n
-        if version == "new":  # the first and every VERIFY_EVERY-th frame get a verification launch
+        if version == "new":  # the first and every VERIFY_EVERY-th base keyframe get a verification launch (an upper bound)
             from render2spike.render.noise import VERIFY_EVERY
             per_frame *= 1.0 + 1.0 / VERIFY_EVERY
     return {"scene": cfg["scene"], "lux": cfg["lux"], "resolution": f"{rnd.height}x{rnd.width}", "spp": int(spp),
@@ -451,7 +451,7 @@ def write_report(res, meta, out_dir: Path) -> Path:
               "Blocks of frames in the order pipeline, bare, bare, pipeline (`--rounds` times, 2 by default; the row's blocks are in 'per block'); the pipeline "
               "block runs from its first frame's render to `render_scene`'s return (frame writes in the "
               "background writer, journal, manifest). It includes the noise verification launches actually made "
-              "(every `VERIFY_EVERY`-th frame and the first; the first frame's second render is the pilot's "
+              "(the first and every `VERIFY_EVERY`-th base keyframe; the first frame's second render is the pilot's "
               "t = 0 render at the frame spp where the pilot made one, no launch); 'without verification' takes "
               "one bare frame per verification launch made out. 'per block': each pipeline block over its neighbouring bare block. "
               "'median block': the median of those, which one block disturbed by another process moves less. "

@@ -78,6 +78,8 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
         raise UnknownMethodError("reconstruction method", method, METHODS)
     spikes, meta = read_recording(spikes_path, layout=layout, height=height, width=width, drop_columns=drop_columns)
     T, H, W = spikes.shape
+    if T == 0:
+        raise InputError("holds no interval (an empty recording): nothing to reconstruct", path=spikes_path)
     prof = None
     if profile:
         prof = resolve_profile(profile, H, W)
@@ -104,7 +106,7 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
         centers = [T // 2 if center is None else int(center)]
     for c in centers:
         if not 0 <= c < T:
-            raise InputError(f"center {c} is outside the stream (0..{T - 1})", field="--center")
+            raise InputError(f"center {c} is outside the stream (0..{T - 1})", path=spikes_path, field="--center")
     out_dir = Path(out_dir)
     stem = Path(spikes_path).stem
     written = []

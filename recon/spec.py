@@ -94,7 +94,14 @@ class DataSpec:
     text: str = ""
 
 
+#: options that count something: at least this (everything else numeric must be finite and above 0)
+MINIMUM = {"intervals": 1, "warmup": 0, "max_items": 1, "windows": 1, "window": 1, "ipf": 1, "frame_stride": 1,
+           "stride": 1, "height": 1, "width": 1, "drop_columns": 0}
+
+
 def _convert(key, value, typ):
+    import math
+
     from .datasets import parse_hw
     try:
         if typ == "hw":
@@ -102,9 +109,21 @@ def _convert(key, value, typ):
         if typ == "range":
             if "-" in value.strip("-"):
                 lo, hi = value.split("-", 1)
-                return float(lo), float(hi)
-            return float(value)
-        return typ(value)
+                lo, hi = float(lo), float(hi)
+                if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+                    raise InputError(f"option '{key}': the range {value} must be LO-HI with 0 < LO <= HI (finite)",
+                                     field="--data")
+                return lo, hi
+            v = float(value)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"option '{key}' must be a finite number above 0; got {value}", field="--data")
+            return v
+        v = typ(value)
+        if typ is int and key in MINIMUM and v < MINIMUM[key]:
+            raise InputError(f"option '{key}' must be an integer >= {MINIMUM[key]}; got {value}", field="--data")
+        if typ is float and not (math.isfinite(v) and v > 0):
+            raise InputError(f"option '{key}' must be a finite number above 0; got {value}", field="--data")
+        return v
     except InputError:
         raise
     except ValueError:
@@ -154,6 +173,10 @@ def build_dataset(spec: DataSpec | str, *, split: str | None = None, model: str 
                   n_windows=o.pop("windows", 10), window=o.pop("window", 32), start=o.pop("start", "phase"),
                   intervals=o.pop("intervals", None), warmup=o.pop("warmup", 64),
                   max_items=o.pop("max_items", None), include_spikes=include_spikes, implementation=implementation)
+    need = common["n_windows"] * common["window"]
+    if common["intervals"] is not None and common["intervals"] < need:
+        raise InputError(f"option 'intervals' ({common['intervals']}) must be >= windows x window "
+                         f"({common['n_windows']} x {common['window']} = {need}) in '{spec.text}'", field="--data")
     split = o.pop("split", split or "test")
     if spec.kind == "davis":
         return D.DavisDataset(spec.paths[0], split, **o, **common)

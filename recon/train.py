@@ -180,6 +180,9 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         torch.set_num_threads(int(cfg.threads))
     if len(dataset) == 0:
         raise InputError("the training data hold no items", field="--data")
+    for name, lo in (("steps", 1), ("batch_size", 1), ("checkpoint_every", 1), ("log_every", 1)):
+        if int(getattr(cfg, name)) < lo:
+            raise InputError(f"must be an integer >= {lo}; got {getattr(cfg, name)}", field="--" + name.replace("_", "-"))
 
     step, rows = 0, []
     if resume:
@@ -238,6 +241,7 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
     info = {"format": "render2spike-train-run", "version": 1, "network": model.config.to_dict(),
             "train": asdict(cfg), "device": str(device), "provenance": provenance()}
     info.update(run_info or {})
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out_dir / "config.json", info)
 
@@ -291,6 +295,14 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                     break
             if stopped_early:
                 break
+    except BaseException:
+        if not resume and not last.is_file():  # failed before its first checkpoint: no run to resume, none left
+            (out_dir / "config.json").unlink(missing_ok=True)
+            if created:
+                import contextlib
+                with contextlib.suppress(OSError):
+                    out_dir.rmdir()
+        raise
     finally:
         bar.close()
     checkpoint()

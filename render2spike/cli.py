@@ -6,8 +6,8 @@ and exposes ``register(subparsers)``; this file discovers them. A module's
 arguments and returns an exit code.
 
 Errors derived from :class:`sensor.errors.Render2SpikeError` are printed as one
-line (``render2spike: error: ...``) with exit code 2; a full disk says which file
-it was writing; set ``RENDER2SPIKE_DEBUG=1`` to see the traceback instead.
+line (``render2spike: error: ...``) with exit code 2; a full disk, a permission refused and a
+read-only file system say which file; set ``RENDER2SPIKE_DEBUG=1`` to see the traceback instead.
 SIGTERM is handled like Ctrl-C (SIGINT): the command stops, temp files are
 removed, locks released, exit code 130 (143 for SIGTERM).
 
@@ -128,11 +128,13 @@ def main(argv=None) -> int:
         # last resort: a file or value problem we did not anticipate
         if os.environ.get("RENDER2SPIKE_DEBUG"):
             raise
-        from sensor.io.fileio import is_disk_full
-        if is_disk_full(exc):
-            where = getattr(exc, "filename", None) or getattr(args, "out", None)
-            print(f"render2spike: error: disk full while writing {where or 'the output'} (no space left on "
-                  "device); free some space and rerun", file=sys.stderr)
+        from sensor.io.fileio import is_disk_full, os_error_line
+        line = os_error_line(exc, fallback=getattr(args, "out", None))
+        if line is None and is_disk_full(exc):
+            line = (f"disk full while writing {getattr(args, 'out', None) or 'the output'} (no space left on "
+                    "device); free some space and rerun")
+        if line is not None:
+            print(f"render2spike: error: {line}", file=sys.stderr)
         else:
             print(f"render2spike: error: {type(exc).__name__}: {exc} (set RENDER2SPIKE_DEBUG=1 for the traceback)",
                   file=sys.stderr)

@@ -80,3 +80,20 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
                 or action.option_strings == [] or isinstance(action, argparse._HelpAction)):
             return text
         return f"{text} (default: %(default)s)" if text else "(default: %(default)s)"
+
+
+def check_numbers(args, *, at_least: dict | None = None, positive: tuple = ()) -> None:
+    """Refuse numeric options out of range before anything is read or written (one line naming the option).
+
+    ``at_least``: {attribute: minimum} for integer options; ``positive``: float options that must be finite and
+    above 0. Options left at None (not given, no default) are not checked.
+    """
+    import math
+    for name, lo in (at_least or {}).items():
+        v = getattr(args, name, None)
+        if v is not None and v < lo:
+            raise InputError(f"must be an integer >= {lo}; got {v}", field="--" + name.replace("_", "-"))
+    for name in positive:
+        v = getattr(args, name, None)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise InputError(f"must be a finite number above 0; got {v}", field="--" + name.replace("_", "-"))

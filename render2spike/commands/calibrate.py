@@ -103,6 +103,8 @@ def run(args) -> int:
         raise InputError("calibrate needs --dark and --flat recordings, or --from-rsir MAPS.npz",
                          field="--flat" if args.dark else "--dark")
     from sensor.calibration.estimate import DEFAULT_HOT_THRESHOLD, calibrate, write_report
+    from sensor.io.dat import check_frame_dims
+    check_frame_dims(args.height, args.width)
     base_path = args.base if Path(args.base).exists() else None
     out = check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
     for suffix in (".png", ".json"):  # the report beside the profile is an output too
@@ -133,6 +135,9 @@ def run(args) -> int:
         print(f"sensitivity {n['sensitivity_e_per_lux']:.2f} +- {n['sensitivity_se']:.2f} photoelectrons per lux "
               "per interval")
     print("report: " + ", ".join(str(f) for f in files))
+    import sys
+    for w in n.get("warnings") or []:  # repeated after the summary, on stderr, so that they are not missed
+        print(f"render2spike: warning: {w}", file=sys.stderr)
     return 0
 
 

@@ -51,6 +51,8 @@ def register(sub) -> None:
 def convert(input_path, output_path, *, layout=None, height=None, width=None, interval_s=None,
             h5_encoding: str = "packbits-little", overwrite: bool = False) -> dict:
     """Convert one spike file; returns a summary dict. Errors are :class:`sensor.errors.InputError`."""
+    import numpy as np
+
     from sensor.errors import InputError, SpikeFileError
     from sensor.io.fileio import provenance
     from sensor.io.spikefile import read_spikes_with_meta, write_dat, write_h5, write_spikes
@@ -64,6 +66,8 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
         raise InputError("OUTPUT is the INPUT file; choose another name", path=dst)
     if dst.exists() and not overwrite:
         raise InputError("exists; pass --overwrite to replace it", path=dst)
+    if interval_s is not None and not (np.isfinite(interval_s) and interval_s > 0):
+        raise InputError(f"must be a finite number of seconds above 0; got {interval_s}", field="--interval-s")
     spikes, meta = read_spikes_with_meta(src, layout=layout, height=height, width=width)
     T, H, W = spikes.shape
     interval = float(interval_s if interval_s is not None else meta.get("interval_s", INTERVAL_S))

@@ -44,7 +44,8 @@ def run(args) -> int:
     from recon.evaluate import evaluate, load_models, parse_methods
     from recon.spec import build_dataset, parse_data_spec
 
-    from render2spike.commands._common import check_output
+    from render2spike.commands._common import check_numbers, check_output
+    check_numbers(args, at_least=dict(examples=0))
     check_output(args.out, overwrite=args.overwrite, folder=True)
     methods = parse_methods(args.methods)
     spec = parse_data_spec(args.data)

@@ -109,6 +109,8 @@ def run(args) -> int:
         raise InputError("exists and is not a folder", path=out)
     if (out / "realism.json").exists() and not args.overwrite:
         raise InputError("already holds a realism report; pass --overwrite to replace it", path=out)
+    from render2spike.commands._common import check_numbers
+    check_numbers(args, at_least=dict(segments=2, fit_seeds=1, fit_pixels=1))
     if not 0 < args.alpha < 1:
         raise InputError(f"must be in (0, 1); got {args.alpha}", field="--alpha")
     specs = parse_models(args.models)
@@ -134,6 +136,16 @@ def run(args) -> int:
         spikes = spikes[:args.max_intervals]
     if spikes.shape[0] < 4 * args.segments:
         raise InputError(f"has {spikes.shape[0]} intervals; the report needs at least {4 * args.segments}",
+                         path=args.recording)
+    used = f"{'the centred window' if args.crop else 'the recording'}" + (
+        f" (first {args.max_intervals} intervals, --max-intervals)" if T > args.max_intervals else "")
+    if not spikes.any():
+        raise InputError(f"{used} holds no spike at all ({spikes.shape[0]} intervals of {H} x {W}): a recording "
+                         "with no spike cannot be told from any model; check the file (or its --layout)",
+                         path=args.recording)
+    if spikes.all():
+        raise InputError(f"{used} fires at every pixel in every interval ({spikes.shape[0]} intervals of {H} x {W}): "
+                         "a saturated recording cannot be told from any model; check the file (or its --layout)",
                          path=args.recording)
     if args.fit and (args.fit_seeds < 2 or args.fit_pixels < 20):
         raise InputError(f"--fit needs --fit-seeds >= 2 (for its uncertainty) and --fit-pixels >= 20; got "

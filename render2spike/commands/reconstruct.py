@@ -59,7 +59,9 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from recon.reconstruct import reconstruct_file
 
-    from render2spike.commands._common import check_output
+    from render2spike.commands._common import check_numbers, check_output
+    check_numbers(args, at_least=dict(window=1, windows=1, window_length=1, every=1, center=0, drop_columns=0),
+                  positive=("sigma",))
     check_output(args.out, inputs=[args.spikes, args.checkpoint], overwrite=args.overwrite, folder=True)
     written = reconstruct_file(args.spikes, method=args.method, checkpoint=args.checkpoint, out_dir=args.out,
                                window=args.window, center=args.center, every=args.every, profile=args.profile,

@@ -201,8 +201,9 @@ def run(args) -> int:
 
 
 def run_lux(a) -> int:
-    from render2spike.commands._common import check_output
+    from render2spike.commands._common import check_numbers, check_output
     from render2spike.studies.lux import make_client, plan_lux_sweep, run_jobs, write_study
+    check_numbers(a, at_least=dict(window=1, preroll=0, centers=1), positive=("reference_lux",))
     check_output(a.out, inputs=[a.frames], overwrite=a.overwrite, folder=True)
     jobs = plan_lux_sweep(a.frames, a.lux, a.models, a.seeds, profile=a.profile, window=a.window,
                           n_centers=a.centers, methods=a.methods, reference_lux=a.reference_lux, preroll=a.preroll)
@@ -219,8 +220,9 @@ def run_lux(a) -> int:
 
 
 def run_motion(a) -> int:
-    from render2spike.commands._common import check_output
+    from render2spike.commands._common import check_numbers, check_output
     from render2spike.studies.motion import parse_param, run_motion_study
+    check_numbers(a, at_least=dict(window=1, preroll=0, centers=1, edge_radius=1), positive=("lux", "duration"))
     check_output(a.out, overwrite=a.overwrite, folder=True)
     key, values = parse_param(a.param)
     res = run_motion_study(a.scene, key, values, a.out, methods=a.methods, models=a.models, seeds=a.seeds,
@@ -233,8 +235,12 @@ def run_motion(a) -> int:
 
 
 def run_generalisation(a) -> int:
-    from render2spike.commands._common import check_output
+    from render2spike.commands._common import check_numbers, check_output
     from render2spike.studies.generalisation import run_generalisation_study
+    check_numbers(a, at_least=dict(steps=1, batch_size=1, width=1, threads=1, workers=0), positive=("test_fraction",))
+    if not a.test_fraction < 1:
+        from sensor.errors import InputError
+        raise InputError(f"must be in (0, 1); got {a.test_fraction}", field="--test-fraction")
     check_output(a.out, inputs=[a.data], overwrite=a.overwrite, folder=True)
     res = run_generalisation_study(a.data, a.out, train_models=a.train_models, test_models=a.test_models,
                                    baselines=a.baselines, reuse=a.reuse, steps=a.steps, batch_size=a.batch_size,

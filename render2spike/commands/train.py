@@ -113,6 +113,10 @@ def run(args) -> int:
     from recon.train import TrainConfig, train
     from sensor.errors import InputError
 
+    from render2spike.commands._common import check_numbers
+    check_numbers(args, at_least=dict(steps=1, batch_size=1, checkpoint_every=1, workers=0, threads=1, width=1,
+                                      res_blocks=0, attn_depth=0, heads=1, attn_window=1),
+                  positive=("lr", "max_minutes"))
     if args.overwrite and args.resume:
         raise InputError("--overwrite starts a new run and --resume continues one: give one of them",
                          field="--overwrite")

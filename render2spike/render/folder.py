@@ -177,8 +177,10 @@ class FramesFolder:
     def locked(cls, out, log=print):
         """The folder ``out`` (made if missing), locked for one render, its leftover temp files swept.
 
-        On an error or interruption the lock is released, and a folder this call made that received no frame
-        is removed again (with the state and journal the render began): it leaves no empty folder behind."""
+        On an error or interruption a folder this call made that received no frame is cleaned up (the state
+        and journal the render began removed) while the lock is still held, then the lock is released and the
+        folder, now empty, removed: it leaves no empty folder behind, and no other render can start in the
+        folder while the clean-up runs (one that takes the lock at once keeps the folder: it is not empty)."""
         out = Path(out)
         if out.exists() and not out.is_dir():
             raise InputError("output path exists and is not a folder", path=out)
@@ -191,12 +193,17 @@ class FramesFolder:
             folder = cls(out, log)
             yield folder
         except BaseException:
-            lock.release()
-            if created and not (folder is not None and folder.wrote_any):
-                for nm in (STATE_NAME, JOURNAL_NAME):
-                    (out / nm).unlink(missing_ok=True)
+            empty = created and not (folder is not None and folder.wrote_any)
+            try:
+                if empty:
+                    for nm in (STATE_NAME, JOURNAL_NAME):
+                        with contextlib.suppress(OSError):
+                            (out / nm).unlink(missing_ok=True)
+            finally:
+                lock.release()  # after the clean-up; the lock file is the last thing in the folder
+            if empty:
                 with contextlib.suppress(OSError):
-                    out.rmdir()
+                    out.rmdir()  # fails, harmlessly, when another render has taken the folder since
             raise
         finally:
             lock.release()

@@ -190,8 +190,11 @@ class _Keyframes:
     def render(self, tick: int):
         """Render the frame at ``tick``, check it, queue it for writing (and journalling); -> its Phi."""
         rnd, scene, t_s = self.rnd, self.scene, self.source.time(tick)
-        # the achieved ratio is measured on the first and every VERIFY_EVERY-th (128th) frame (one extra render each)
-        f = rnd.render_frame(t_s, int(scene.render["seed"]), self.spp, variance=self.n_rendered % VERIFY_EVERY == 0)
+        # the achieved ratio is measured on the first and every VERIFY_EVERY-th (128th) base keyframe of the time
+        # grid (one extra render each): chosen by the tick, so a resumed render verifies the frames an
+        # uninterrupted one does and writes the same files
+        verify = tick % (VERIFY_EVERY * self.source.grid.step) == 0
+        f = rnd.render_frame(t_s, int(scene.render["seed"]), self.spp, variance=verify)
         if f["phi_var"] is None:
             ratio = float("nan")  # what render_noise_ratio gives without a variance
         else:

@@ -55,7 +55,8 @@ ratio is then the ratio measured at the chosen count. Cost: pairs at 4, 16, 64
 spp and at ``c``, plus usually two at the answer and its neighbour, once.
 
 The budget is then *verified*: some frames (the first, then every
-:data:`VERIFY_EVERY`-th rendered) get a second, independent render whose
+:data:`VERIFY_EVERY`-th base keyframe of the time grid, by its index: the same
+frames whether or not the render was resumed) get a second, independent render whose
 difference measures that frame's ``rho`` (the frame itself is the first render,
 so it has exactly the asked spp; with a fixed spp, the first frame's second
 render is the pilot's t = 0 render at that spp when there is one, see
@@ -70,9 +71,10 @@ import math
 
 import numpy as np
 
-#: every how many rendered frames the achieved render-noise ratio is measured (one extra launch each:
-#: 1/128 = 0.8 % of the render time of a long render; the first frame of every run is always measured).
-#: A count, not a time budget, so that which frames carry a measured ratio does not depend on the load.
+#: every how many base keyframes (by index on the time grid: ticks 0, 128 x step, ...) the achieved
+#: render-noise ratio is measured (one extra launch each: at most 1/128 = 0.8 % of a long render's time).
+#: Chosen by the frame's place in the clip, not by a count or a time budget, so that which frames carry a
+#: measured ratio depends neither on the load nor on whether the render was resumed.
 VERIFY_EVERY = 128
 #: the achieved ratio should lie in [BAND[0], BAND[1]] x target (0.15-0.25 for the default target 0.2)
 BAND = (0.75, 1.25)

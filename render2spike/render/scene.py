@@ -402,6 +402,11 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
         if cache is not None:
             cache[pkey] = prof
     sc = Scene(path=path, data=data, profile=prof)
+    if not data["duration_s"] >= sc.profile.interval_s:
+        raise InputError(f"the clip ({data['duration_s']:g} s) is shorter than one read-out interval "
+                         f"({sc.profile.interval_s * 1e6:g} us) of the profile '{sc.profile.name}': it would hold no "
+                         f"spike frame; give at least {sc.profile.interval_s:g} s (--duration)", path=path,
+                         field="duration_s")
     for i, o in enumerate(data["objects"]):
         where = f"objects.{i}"
         if o["shape"] == "mesh":

@@ -210,7 +210,6 @@ def run_motion_study(scene, param: str, values, out, *, methods="tfp,tfp-dt,tfp-
     from sensor.rates import n_intervals_spanned
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     sc0 = load_scene(scene, list(sets), lux=lux, duration_s=duration_s)
     axis = check_param(sc0, param) if blur_axis == "auto" else blur_axis
     motion_lines(np.zeros((4, 4)), axis)  # validates the axis
@@ -218,6 +217,9 @@ def run_motion_study(scene, param: str, values, out, *, methods="tfp,tfp-dt,tfp-
     load_study_models(meths)
     for m in models:
         parse_model_spec(m)
+    for v in values:  # every value's scene is checked before the first render (and before OUT is made)
+        load_scene(scene, list(sets) + [f"{param}={v!r}"], lux=lux, duration_s=duration_s)
+    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows, strips, renders = [], [], []
     for v in values:

@@ -100,6 +100,56 @@ def _as_recording(x, height, width, drop_columns, what, i):
     return s.astype(bool, copy=False)
 
 
+def _name(x, what, i):
+    """How a message names recording ``i`` of ``what`` ("dark" / "flat"): its file, or its index."""
+    return f"{what} recording {i}" if isinstance(x, np.ndarray) else f"{what} recording {i} ({x})"
+
+
+def _check_not_repeated(dark, flat):
+    """Refuse a file given twice (to --dark, to --flat, or to both): each recording counts once."""
+    seen = {}
+    for what, recs in (("dark", dark), ("flat", flat)):
+        for i, x in enumerate(recs):
+            if isinstance(x, np.ndarray):
+                continue
+            try:
+                key = Path(x).resolve()
+            except OSError:
+                key = Path(x)
+            if key in seen:
+                w0, i0 = seen[key]
+                why = ("each flat must be a different brightness level" if what == w0 == "flat"
+                       else "each recording counts once")
+                raise CalibrationError(f"given twice ({w0} recording {i0} and {what} recording {i}); {why}",
+                                       path=x, field=f"--{what}")
+            seen[key] = (what, i)
+
+
+def _digest(s: np.ndarray) -> str:
+    """A content hash of a bool (T, H, W) recording (its shape and packed bits)."""
+    import hashlib
+    h = hashlib.blake2b(str(s.shape).encode(), digest_size=16)
+    h.update(np.packbits(np.ascontiguousarray(s)).tobytes())
+    return h.hexdigest()
+
+
+def _check_unique_data(digests: dict, s, x, what, i):
+    """Refuse recording ``i`` of ``what`` when it holds the same spikes as one read before (a copy of a file)."""
+    d = _digest(s)
+    if d in digests:
+        w0, i0, x0 = digests[d]
+        why = ("a duplicated brightness level: each flat must be a different level" if what == w0 == "flat"
+               else "each recording counts once")
+        raise CalibrationError(f"holds the same spikes as {_name(x0, w0, i0)}: {why}",
+                               path=None if isinstance(x, np.ndarray) else x,
+                               field=f"--{what}" + ("" if not isinstance(x, np.ndarray) else f" recording {i}"))
+    digests[d] = (what, i, x)
+
+
+#: a recording whose mean spike fraction reaches this fires at (nearly) every interval: saturated
+SATURATED_FRACTION = 0.9
+
+
 def _f(x):
     """A float for JSON (None for NaN)."""
     return None if not np.isfinite(x) else float(x)
@@ -268,6 +318,21 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     if len(flat) < 2:
         raise CalibrationError(f"need flat-field recordings at >= 2 brightness levels for the PRNU regression; got "
                                f"{len(flat)}", field="--flat")
+    if not (np.isfinite(hot_threshold) and hot_threshold > 0):
+        raise CalibrationError(f"theta_HT must be a finite number of spikes per interval above 0; got {hot_threshold}",
+                               field="--hot-threshold")
+    if flat_lux is not None:
+        lux = np.asarray(flat_lux, np.float64).reshape(-1)
+        bad = [i for i, v in enumerate(lux) if not (np.isfinite(v) and v > 0)]
+        if bad:
+            raise CalibrationError(f"illuminance {lux[bad[0]]:g} (value {bad[0] + 1}, for flat recording {bad[0]}) "
+                                   "must be a finite number of lux above 0", field="--flat-lux")
+        if len(flat_lux) != len(flat):
+            raise CalibrationError(f"--flat-lux gives {len(flat_lux)} values for {len(flat)} flat recordings; give "
+                                   "one illuminance per flat", field="--flat-lux")
+    _check_not_repeated(dark, flat)
+    digests = {}
+    warn = []
     H = height or base.height
     Wd = (width or (base.raw_width if drop_columns else base.width))
 
@@ -282,13 +347,26 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
             shape = s.shape[1:]
         elif s.shape[1:] != shape:
             raise CalibrationError(f"dark recording {i} is {s.shape[1:]}, the first one is {shape}")
-        counts += s.sum(axis=0)
+        _check_unique_data(digests, s, x, "dark", i)
+        c = s.sum(axis=0)
+        frac = float(c.sum()) / max(c.size * s.shape[0], 1)
+        if frac >= SATURATED_FRACTION:
+            raise CalibrationError(f"dark recording {i} fires at {100 * frac:.0f} % of pixel-intervals "
+                                   "(saturated): a dark recording is taken with no light on the sensor",
+                                   path=None if isinstance(x, np.ndarray) else x, field="--dark")
+        counts += c
         n_int += s.shape[0]
         dark_recs.append(x if not isinstance(x, np.ndarray) else s)
         say(f"dark {i + 1}/{len(dark)}: {s.shape[0]} intervals")
     if shape != base.shape:
         raise CalibrationError(f"recordings are {shape[0]}x{shape[1]} but the base profile '{base.name}' is "
                                f"{base.height}x{base.width}; pass a base profile of the same size")
+    if not counts.any():
+        files = ", ".join(str(x) for x in dark if not isinstance(x, np.ndarray))
+        raise CalibrationError(f"the dark recordings{' (' + files + ')' if files else ''} hold no spike at all "
+                               f"({n_int} intervals): the dark rate would be exactly 0 and every dark event of the "
+                               "flats taken for light; record longer darks, or check that the files are spike "
+                               "recordings of this sensor", field="--dark")
     p_dark = counts / n_int
     median_p = float(np.median(p_dark))
     hot = (p_dark - median_p) >= hot_threshold
@@ -308,14 +386,20 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
 
     # ---- flat fields: reset, effective light per pixel, PRNU, threshold, sensitivity
     normal = ~hot
-    if flat_lux is not None and len(flat_lux) != len(flat):
-        raise CalibrationError(f"--flat-lux gives {len(flat_lux)} values for {len(flat)} flat recordings; give one "
-                               "illuminance per flat", field="--flat-lux")
     levels = []
     for i, x in enumerate(flat):
         s = _as_recording(x, H, Wd, drop_columns, "flat", i)
         if s.shape[1:] != shape:
             raise CalibrationError(f"flat recording {i} is {s.shape[1:]}, the dark recordings are {shape}")
+        _check_unique_data(digests, s, x, "flat", i)
+        path = None if isinstance(x, np.ndarray) else x
+        if s.all():
+            raise CalibrationError(f"flat recording {i} fires at every pixel in every interval (saturated): it "
+                                   "carries no information on the light; record it dimmer or leave it out",
+                                   path=path, field="--flat")
+        if not s.any():
+            raise CalibrationError(f"flat recording {i} holds no spike at all: a flat field is taken with light "
+                                   "on the sensor; check the file, or leave it out", path=path, field="--flat")
         levels.append(flat_level_stats(s))
         say(f"flat {i + 1}/{len(flat)}: mean spike rate {levels[-1].rate[normal].mean():.4f} per interval")
     flat_ints = [lv.T for lv in levels]
@@ -328,6 +412,12 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
     else:
         fit = fit_flats(levels, normal, mu_dc, base.refractory_fraction.astype(np.float64), base.threshold_e,
                         median_p, var_mu=var_mu, reset=reset, flat_lux=flat_lux, say=say)
+    for i, (x, why) in enumerate(zip(flat, fit["level_reason"])):  # levels the fit could not use at all
+        if why == "no signal" or why.startswith("saturated"):
+            what = "is saturated" if why.startswith("saturated") else "has no signal above the dark rate"
+            warn.append(f"{_name(x, 'flat', i)} {what} (mean spike rate {fit['level_mean_rate'][i]:.3g} per "
+                        "interval): not used for the PRNU, the reset decision or the threshold")
+            say("warning: " + warn[-1])
     theta_cal = float(fit["threshold_e"]) if fit.get("threshold_e") is not None and estimate_threshold else \
         float(base.threshold_e)
     gain_fit = np.clip(np.where(hot, 1.0, fit["gain"]), 0.05, None)
@@ -443,6 +533,7 @@ def calibrate(dark, flat, base: SensorProfile | str = "vidar-default", *, hot_th
         "prnu_se_median": float(np.median(fit["gain_se"][normal])),
         "prnu_levels_used": [bool(u) for u in use],
         "flat_mean_spike_rate": [float(lv.rate[normal].mean()) for lv in levels],
+        "warnings": warn,
         **{k: v for k, v in fit.items() if k not in ("gain", "gain_se", "x", "sensitivity_map",
                                                        "sensitivity_se_map", "dark_x",
                                                        "gain_se_flat", "gain_dark_coeff")},

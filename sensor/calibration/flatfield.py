@@ -164,7 +164,21 @@ def light_variance(reset, x, k, mu, f, T, rate=None):
     window ends); ``Var(x) = Var(rate) / (d rate / d x)^2``. Returns (variance,
     count sd [spikes], d x / d mu_DC): the last propagates the dark-rate
     estimate's error, which all levels of a pixel share.
+
+    A pixel without light (``x <= 1e-9``: no spike at this level) carries no information: infinite variance,
+    count sd 0 (its exact moments would need ~1 / x terms: a dim, short flat must not stall the fit).
     """
+    x, k, mu, f = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (x, k, mu, f)))
+    dark = x <= 1e-9
+    if dark.any():
+        var = np.full(x.shape, np.inf)
+        sd = np.zeros(x.shape)
+        dxm = np.zeros(x.shape)
+        lit = ~dark
+        if lit.any():
+            r = None if rate is None else np.broadcast_to(np.asarray(rate, np.float64), x.shape)[lit]
+            var[lit], sd[lit], dxm[lit] = light_variance(reset, x[lit], k[lit], mu[lit], f[lit], T, r)
+        return var, sd, dxm
     m, v = readout_moments(reset, x, k, mu, f)
     var_n = T * v / m ** 3 + 1.0 / 6.0
     h = np.maximum(1e-3 * x, 1e-9)
@@ -185,7 +199,7 @@ def light_variance(reset, x, k, mu, f, T, rate=None):
 
 
 # ----------------------------------------------------------------------------------------------------- reset
-def decide_reset(levels, normal, x_levels, theta, gain, mu, f):
+def decide_reset(levels, normal, x_levels, theta, gain, mu, f, use=None):
     """Reset decision from the lag-1 correlation of read-out ISIs.
 
     Interval reset: ISIs are i.i.d. (a discrete renewal process), so the pooled
@@ -198,13 +212,17 @@ def decide_reset(levels, normal, x_levels, theta, gain, mu, f):
     -RESET_Z``. Confidence: the posterior probability of the decision with equal
     priors from the Gaussian likelihoods of the two predictions on the mixed
     levels (where neither prediction is reliable, the one-sided p-value of the
-    interval reset alone).
+    interval reset alone). Levels where ``use`` (bool per level) is False (saturated, or no signal: their
+    ISIs say nothing of the reset) are left out.
     """
     mflat = normal.reshape(-1)
     per_level = []
     zs = []
     ll_i = ll_c = 0.0
-    for lv, x in zip(levels, x_levels):
+    for i, (lv, x) in enumerate(zip(levels, x_levels)):
+        if use is not None and not use[i]:
+            per_level.append(dict(rho=None, n_pairs=0, z=None, rho_crossing=None, skipped=True))
+            continue
         rho, npairs, npix = lv.lag1(mflat)
         if npairs < 10:
             per_level.append(dict(rho=rho, n_pairs=npairs, z=None, rho_crossing=None))
@@ -569,7 +587,7 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
         var_x = np.where(count_sd >= MIN_COUNT_SD, var_x, np.inf)
         gain, gain_se, X = fit_gain(minus_dark(x, r_use, k)[0], var_x, nf)
         if reset is None and it == 0:
-            rt = decide_reset(levels, nf, list(x), theta, gain, mu, f)
+            rt = decide_reset(levels, nf, list(x), theta, gain, mu, f, use=signal)
             out.update(rt)
             decided = rt["reset"] or "interval"
             if rt["reset"] is None:
@@ -631,7 +649,8 @@ def fit_flats(levels, normal, mu_dc, f_ref, theta_base, median_p, *, var_mu=None
     out.update(reset=decided, gain=gain.reshape(shape), gain_se=gain_se.reshape(shape), x=x,
                level_light_thresholds=[float(v) for v in X], level_light_e=[float(v * theta) for v in X],
                level_information_share=[float(s) for s in share], level_used=[bool(u) for u in used],
-               level_reason=why, level_informative_pixel_fraction=[float(informative[l, nf].mean()) for l in range(K)])
+               level_reason=why, level_mean_rate=[float(r) for r in mean_rate],
+               level_informative_pixel_fraction=[float(informative[l, nf].mean()) for l in range(K)])
     g_spread = float(gain[nf].std())
     med_se = float(np.median(gain_se[nf]))
     out["prnu_enough"] = bool(med_se < 0.25 * max(g_spread, 1e-12))

@@ -20,7 +20,8 @@ def pack_frames(spikes) -> np.ndarray:
     The in-memory and container layout (image orientation, no flip).
     """
     s = np.asarray(spikes, bool)
-    return np.packbits(s.reshape(s.shape[0], -1), axis=1, bitorder="little")
+    n_pix = int(np.prod(s.shape[1:], dtype=np.int64))
+    return np.packbits(s.reshape(s.shape[0], n_pix), axis=1, bitorder="little")  # n_pix, not -1: n may be 0
 
 
 def count_bits(bits) -> int:
@@ -49,7 +50,7 @@ def packed_to_dat(bits, height: int, width: int) -> np.ndarray:
     bits = np.asarray(bits, np.uint8)
     if width % 8 == 0:
         n = bits.shape[0]
-        return np.ascontiguousarray(bits.reshape(n, height, width // 8)[:, ::-1, :]).reshape(n, -1)
+        return np.ascontiguousarray(bits.reshape(n, height, width // 8)[:, ::-1, :]).reshape(n, height * width // 8)
     return pack_dat_frames(unpack_frames(bits, (height, width)))
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from sensor.errors import SpikeFileError
 from sensor.io.bits import pack_frames
-from sensor.io.fileio import atomic_path, provenance
+from sensor.io.fileio import provenance, write_bytes_atomic
 
 
 SPIKES_FORMAT = "render2spike-spikes"
@@ -41,8 +41,7 @@ def write_spikes(path, spikes=None, *, packed=None, height=None, width=None, int
     buf = io.BytesIO()
     np.savez_compressed(buf, packed=packed, meta_json=meta)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.getvalue())
+    write_bytes_atomic(path, buf.getbuffer())  # one atomic write (a full disk: DiskFullError naming path)
     return path
 
 

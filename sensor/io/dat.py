@@ -13,21 +13,37 @@ import numpy as np
 
 from sensor.errors import SpikeFileError
 from sensor.io.bits import pack_dat_frames, unpack_dat_frames
-from sensor.io.fileio import atomic_path
+from sensor.io.fileio import write_bytes_atomic
 
 
 def write_dat(path, spikes) -> Path:
     """Write bool spikes (T, H, W) [image orientation] to a SpikeCV-compatible .dat, atomically."""
     frames = pack_dat_frames(spikes)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        frames.tofile(tmp)
+    # os.write (not ndarray.tofile, whose short write on a full disk carries no errno): a full disk is a
+    # DiskFullError naming ``path``, and nothing is left behind
+    write_bytes_atomic(path, np.ascontiguousarray(frames))
     return path
+
+
+def check_frame_dims(height, width, path=None) -> None:
+    """Refuse a frame height or width (of a headerless .dat file) that is given but not a positive integer."""
+    for name, v in (("height", height), ("width", width)):
+        if v is None:
+            continue
+        try:
+            ok = int(v) == v and int(v) > 0
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise SpikeFileError(f"the frame {name} must be a positive number of pixels; got {v!r}", path=path,
+                                 field=f"--{name}")
 
 
 def dat_frame_count(path, height: int = 250, width: int = 400) -> int:
     """Number of whole frames in a .dat file; error if the size is not a whole number of frames."""
     path = Path(path)
+    check_frame_dims(height, width, path)
     if not path.is_file():
         raise SpikeFileError("file does not exist", path=path)
     if (height * width) % 8:

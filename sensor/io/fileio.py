@@ -265,6 +265,43 @@ def is_disk_full(exc: BaseException) -> bool:
     return False
 
 
+#: the temp names of :func:`atomic_path` / :func:`write_bytes_atomic`: ``.STEM.part-PID-TAG.EXT``
+_PART_NAME = None
+
+
+def final_name(path) -> Path:
+    """The file a temp file of an atomic write stands for (``d/.x.part-12-0.dat`` -> ``d/x.dat``); else ``path``."""
+    global _PART_NAME
+    import re
+    if _PART_NAME is None:
+        _PART_NAME = re.compile(r"^\.(?P<stem>.+)\.part-\d+-[A-Za-z0-9_]+(?P<ext>\.[^/]*)?$")
+    p = Path(path)
+    m = _PART_NAME.match(p.name)
+    return p.with_name(m["stem"] + (m["ext"] or "")) if m else p
+
+
+def os_error_line(exc: BaseException, fallback=None) -> str | None:
+    """One line for an OS error a user can act on, naming the file; None for any other error.
+
+    A full disk (or quota), a permission refused, a read-only file system. The file is the one the error
+    names (a temp file of an atomic write is named by the file it stands for), else ``fallback``.
+    """
+    seen = 0
+    while exc is not None and seen < 5:
+        if isinstance(exc, OSError) and exc.errno is not None:
+            name = getattr(exc, "filename", None) or getattr(exc, "path", None)
+            where = final_name(name) if name else (fallback or "the output")
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                return f"disk full while writing {where} (no space left on device); free some space and rerun"
+            if exc.errno in (errno.EACCES, errno.EPERM):
+                return f"{where}: permission denied; choose a file or folder you may read or write (e.g. --out)"
+            if exc.errno == errno.EROFS:
+                return f"{where}: cannot write: read-only file system; choose another output (e.g. --out)"
+        exc = exc.__cause__ or exc.__context__
+        seen += 1
+    return None
+
+
 def write_text_atomic(path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (temp file, then rename)."""
     with atomic_path(path) as tmp:

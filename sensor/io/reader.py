@@ -57,6 +57,7 @@ class RateSource:
     def __init__(self, path):
         self.path = Path(path)
         self.kind = None
+        self._reader = None  # the read-ahead thread's executor while chunks are read ahead
         self._member = None
         self._mm = None
         self._crc = None  # a memory-mapped stored .npz member: its CRC-32, folded in as rows are handed out
@@ -237,6 +238,7 @@ class RateSource:
             shape = (rows,) + tuple(self.shape)
             self._pool.reserve(shape, reserve_count(len(bounds), depth, 4 * int(np.prod(shape, dtype=np.int64))))
         ex = ThreadPoolExecutor(1, thread_name_prefix="r2s-read")
+        self._reader = ex  # stopped by close(), also when the chunks are never asked for
         state = {"prev": None, "end": 0}
         futs = deque(ex.submit(self._read_next, profile, i, j, state) for i, j in bounds[:depth])
         return self._chunks_prefetched(profile, bounds, ex, futs, depth, state)
@@ -286,6 +288,10 @@ class RateSource:
             self.close()
 
     def close(self):
+        """Stop the read-ahead thread (its pending reads cancelled) and close the file."""
+        ex, self._reader = self._reader, None
+        if ex is not None:
+            ex.shutdown(wait=True, cancel_futures=True)
         if self._member is not None:
             self._member.close()
             self._member = None
@@ -346,11 +352,31 @@ class ArraySource:
 
 def open_rate_input(source, t_s=None):
     """A chunk source for ``source``: a frames folder or an ``.npz`` / ``.npy`` file (:class:`RateSource`), an
-    in-memory rate array with optional keyframe times ``t_s`` (:class:`ArraySource`), or a source already."""
+    in-memory rate array with optional keyframe times ``t_s`` (:class:`ArraySource`), or a source already.
+
+    ``t_s`` [s] (K,): the keyframe times of an in-memory array, an ``.npy`` file or an ``.npz`` without its
+    own ``t_s``; refused (InputError) for a frames folder or an ``.npz`` that has its own times, and for a
+    source already opened."""
     if isinstance(source, (RateSource, ArraySource)):
+        if t_s is not None:
+            raise InputError("t_s is given with a rate source already opened; open the source with its times",
+                             path=getattr(source, "path", None), field="t_s")
         return source
     if isinstance(source, (str, os.PathLike)):
-        return RateSource(source)
+        src = RateSource(source)
+        if t_s is not None:
+            try:
+                if src.kind == "frames" or src.t_s is not None:
+                    what = "a frames folder" if src.kind == "frames" else "an .npz with its own 't_s'"
+                    raise InputError(f"is {what}: its keyframe times are in the file; do not pass t_s",
+                                     path=src.path, field="t_s")
+                times = np.asarray(t_s, np.float64)
+                _check_array((src.n,) + tuple(src.shape), times, src.path)
+            except BaseException:
+                src.close()
+                raise
+            src.t_s, src.per_interval = times, False
+        return src
     return ArraySource(source, t_s)
 
 

@@ -33,6 +33,7 @@ and what is wrong.
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -44,8 +45,8 @@ from sensor.io.bits import (PackedSpikes, count_bits, pack_dat_frames, pack_fram
                             unpack_dat_frames, unpack_frames)  # noqa: F401
 from sensor.io.container import (SPIKES_FORMAT, SPIKES_VERSION, STREAM_COMPRESSLEVEL, _container_meta,  # noqa: F401
                                  _member, _npz, read_spikes_meta, write_spikes)  # noqa: F401
-from sensor.io.dat import dat_frame_count, read_dat, write_dat  # noqa: F401
-from sensor.io.fileio import atomic_path
+from sensor.io.dat import check_frame_dims, dat_frame_count, read_dat, write_dat  # noqa: F401
+from sensor.io.fileio import write_bytes_atomic
 from sensor.io.writer import SpikeWriter  # noqa: F401
 from sensor.units import INTERVAL_S
 
@@ -252,6 +253,7 @@ def read_spikes_with_meta(path, *, layout: str | None = None, height: int | None
     always ``height``, ``width``, ``n_intervals``, ``layout`` and ``source``.
     """
     path = Path(path)
+    check_frame_dims(height, width, path)
     if layout is None:
         layout = detect_layout(path, height=height, width=width)
     elif layout not in LAYOUTS:
@@ -314,12 +316,15 @@ def write_h5(path, spikes, *, encoding: str = "packbits-little", meta: dict | No
     meta.update({"height": H, "width": W, "n_intervals": T})
     data = pack_frames(s) if encoding == "packbits-little" else s.astype(np.uint8)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            d = f.create_dataset("spikes", data=data, compression="gzip", compression_opts=4,
-                                 chunks=(max(1, min(T, 256)),) + data.shape[1:] if T else None)
-            d.attrs.update({"format": H5_FORMAT, "version": 1, "encoding": encoding, "height": H, "width": W,
-                            "n_intervals": T, "interval_s": float(meta.get("interval_s", INTERVAL_S)),
-                            "orientation": "image (row 0 = top), pixel p = r*W + c; packbits bitorder little",
-                            "meta_json": json.dumps(meta, default=str)})
+    # built in memory, then written in one atomic write: the HDF5 library never writes to the disk itself, so a
+    # full disk is a DiskFullError naming ``path`` (HDF5 writing a file on a full disk can crash the process)
+    image = io.BytesIO()
+    with h5py.File(image, "w") as f:
+        d = f.create_dataset("spikes", data=data, compression="gzip", compression_opts=4,
+                             chunks=(max(1, min(T, 256)),) + data.shape[1:] if T else None)
+        d.attrs.update({"format": H5_FORMAT, "version": 1, "encoding": encoding, "height": H, "width": W,
+                        "n_intervals": T, "interval_s": float(meta.get("interval_s", INTERVAL_S)),
+                        "orientation": "image (row 0 = top), pixel p = r*W + c; packbits bitorder little",
+                        "meta_json": json.dumps(meta, default=str)})
+    write_bytes_atomic(path, image.getbuffer())
     return path

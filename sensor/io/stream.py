@@ -16,7 +16,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from sensor.errors import InputError, ProfileError
-from sensor.io.reader import open_rate_input, plan_reads
+from sensor.io.reader import ArraySource, RateSource, open_rate_input, plan_reads
 from sensor.profile import SensorProfile
 from sensor.simulator import SpikeSimulator
 
@@ -45,12 +45,42 @@ class SpikeStream:
     """A rate input (``source``) and the simulator it feeds (``sim``, whose ``profile`` fits the input).
 
     :meth:`start` plans the reads and starts the reader; :meth:`blocks`, :meth:`write` and :meth:`collect`
-    run the stream once (starting it first when needed).
+    run the stream once (starting it first when needed): running it again is refused (RuntimeError), except
+    :meth:`collect`, which returns the spikes it collected. :meth:`close` (or leaving a ``with`` block) stops
+    the read-ahead thread and closes the input, also for a stream started and never read.
     """
 
     source: object
     sim: SpikeSimulator
     chunks: Iterator | None = None
+    _state: str = "open"  # "open", "running", "done" (run to its end or failed) or "closed"
+    _collected: object = None
+
+    def __enter__(self) -> "SpikeStream":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the read-ahead thread (pending reads cancelled) and close the input file; idempotent."""
+        chunks, self.chunks = self.chunks, None
+        try:
+            if chunks is not None and hasattr(chunks, "close"):
+                chunks.close()
+        finally:
+            close = getattr(self.source, "close", None)
+            if close is not None:
+                close()
+            if self._state != "done":
+                self._state = "closed"
+
+    def _check_runnable(self) -> None:
+        if self._state == "done":
+            raise RuntimeError("this spike stream has already run (blocks, write and collect run it once); open "
+                               "a new one with open_stream")
+        if self._state == "closed":
+            raise RuntimeError("this spike stream is closed; open a new one with open_stream")
 
     @property
     def profile(self) -> SensorProfile:
@@ -65,6 +95,7 @@ class SpikeStream:
         """Plan the reads (:func:`sensor.io.reader.plan_reads`; ``chunk``: keyframes per read, None: one
         simulator block's) and start reading: a reader thread starts on the first chunks at once, while
         ``warm_up`` loads the simulator's kernels here (:meth:`SpikeSimulator.warm_up`)."""
+        self._check_runnable()
         if self.chunks is None:
             bounds, ahead = plan_reads(self.source, self.sim, chunk)
             self.chunks = self.source.chunks(self.profile, bounds, ahead)  # the reader thread starts now ...
@@ -79,13 +110,18 @@ class SpikeStream:
         (``iter_feed_packed(lookahead=True)``); each chunk is handed over as read and checked (``owned``,
         ``checked``), its first ``overlap`` keyframes repeating the previous chunk's last.
         """
+        self._check_runnable()
+        if self._state == "running":
+            raise RuntimeError("this spike stream is already being read (by blocks, write or collect)")
         self.start()
         chunks, sim = self.chunks, self.sim
+        self._state = "running"
         try:
             for rate, t, overlap in chunks:
                 yield from sim.iter_feed_packed(rate, t, checked=True, owned=True, overlap=overlap, lookahead=True)
             yield from sim.iter_finish_packed()  # the block in flight, then the last, partial one
         finally:
+            self._state = "done"
             chunks.close()
 
     def write(self, writer, progress: Callable[[int], None] | None = None) -> None:
@@ -98,15 +134,19 @@ class SpikeStream:
                 progress(bits.shape[0])
 
     def collect(self, progress: Callable[[int], None] | None = None):
-        """The whole stream in memory, bit-packed (:class:`sensor.io.spikefile.PackedSpikes`)."""
+        """The whole stream in memory, bit-packed (:class:`sensor.io.spikefile.PackedSpikes`); called again, the
+        same spikes (the stream runs once)."""
         from sensor.io.spikefile import PackedSpikes
+        if self._collected is not None:
+            return self._collected
         parts = []
         for bits in self.blocks():
             parts.append(bits)
             if progress is not None:
                 progress(bits.shape[0])
         packed = np.concatenate(parts) if parts else np.zeros((0, self.sim.n_bytes), np.uint8)
-        return PackedSpikes(packed, self.profile.shape)
+        self._collected = PackedSpikes(packed, self.profile.shape)
+        return self._collected
 
 
 def open_stream(source, profile, model: str = "elssim", seed: int = 0, *, t_s=None, reset: str | None = None,
@@ -122,20 +162,26 @@ def open_stream(source, profile, model: str = "elssim", seed: int = 0, *, t_s=No
     """
     say = say or _quiet
     where = source if isinstance(source, (str, os.PathLike)) else getattr(source, "path", None)  # as given
+    opened = not isinstance(source, (RateSource, ArraySource))
     src = open_rate_input(source, t_s)
-    profile = profile if isinstance(profile, SensorProfile) else SensorProfile.load(profile)
-    profile = profile_for_input(profile, src.shape, say)
-    if reset:
-        profile = profile.replace(reset=reset)
-    rendered_for = (src.frames.manifest.get("profile") or {}).get("name") if src.kind == "frames" else None
-    if rendered_for and rendered_for != profile.name:
-        say(f"warning: the frames were rendered for profile '{rendered_for}' (its QE weights Phi); simulating "
-            f"with '{profile.name}' uses that QE but this profile's pixel area and noise maps")
-    sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=src.per_interval)
-    if src.n_intervals(profile.interval_s) < 1:
-        what = "keyframes span" if not src.per_interval else "input holds"
-        span = (f"{src.t_s[-1] - src.t_s[0]:.6g} s ({src.n} keyframe(s))" if not src.per_interval else "no rows")
-        raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
-                         "(need at least two keyframes one interval apart)", path=where,
-                         field="frames" if src.kind == "frames" else "t_s")
+    try:
+        profile = profile if isinstance(profile, SensorProfile) else SensorProfile.load(profile)
+        profile = profile_for_input(profile, src.shape, say)
+        if reset:
+            profile = profile.replace(reset=reset)
+        rendered_for = (src.frames.manifest.get("profile") or {}).get("name") if src.kind == "frames" else None
+        if rendered_for and rendered_for != profile.name:
+            say(f"warning: the frames were rendered for profile '{rendered_for}' (its QE weights Phi); simulating "
+                f"with '{profile.name}' uses that QE but this profile's pixel area and noise maps")
+        sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=src.per_interval)
+        if src.n_intervals(profile.interval_s) < 1:
+            what = "keyframes span" if not src.per_interval else "input holds"
+            span = (f"{src.t_s[-1] - src.t_s[0]:.6g} s ({src.n} keyframe(s))" if not src.per_interval else "no rows")
+            raise InputError(f"the {what} {span}: less than one whole interval of {profile.interval_s * 1e6:g} us "
+                             "(need at least two keyframes one interval apart)", path=where,
+                             field="frames" if src.kind == "frames" else "t_s")
+    except BaseException:
+        if opened:  # opened here: released here (a source the caller opened stays the caller's)
+            src.close()
+        raise
     return SpikeStream(src, sim)

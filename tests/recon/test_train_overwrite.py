@@ -81,3 +81,21 @@ def test_train_head_from_init_on_the_cli(tmp_path, capsys):
     row = (tmp_path / "a" / "loss.csv").read_text().splitlines()[1].split(",")
     header = (tmp_path / "a" / "loss.csv").read_text().splitlines()[0].split(",")
     assert row[header.index("head")] == "" and row[header.index("refine")] != ""
+
+
+@pytest.mark.torch
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, monkeypatch, capsys):
+    """No config.json (nor an empty run folder) from a run that stopped before its first checkpoint."""
+    import recon.nets as nets
+    data = _tiny_data(tmp_path)
+    run = tmp_path / "run"
+
+    def broken(*a, **k):
+        raise ValueError("boom in the first step")
+    monkeypatch.setattr(nets, "rsir_loss", broken)
+    assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--batch-size", 1, *NET) == 2
+    assert "boom" in capsys.readouterr().err
+    assert not run.exists()
+    run.mkdir()  # a folder the user made is kept, empty again
+    assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--batch-size", 1, *NET) == 2
+    assert run.is_dir() and list(run.iterdir()) == []

@@ -90,3 +90,39 @@ def test_backend_probe_survives_a_bad_libllvm():
         pytest.skip("no LLVM 15 here to provoke the abort")
     ok, msg = probe_variant("llvm_ad_spectral", str(bad))
     assert not ok and msg  # the child died, we did not
+
+
+@pytest.mark.render
+@needs_mitsuba
+def test_resumed_render_writes_the_same_files_as_an_uninterrupted_one(tmp_path, write_scene, monkeypatch):
+    """Which frames carry a measured render_noise_ratio depends on their place in the clip, not on the run:
+    a render interrupted after 2 frames and resumed writes every frame file byte for byte as one run does."""
+    from render2spike.render import renderer as rmod
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    from sensor.io.frames import read_frames
+
+    p = write_scene({"duration_s": 0.02}, name="s.yaml")
+    quiet = dict(progress=False, log=lambda *a: None)
+    whole = render_scene(load_scene(p, ["render.spp=8"]), tmp_path / "whole", **quiet)
+    orig = rmod.SceneRenderer.render_frame
+    calls = {"n": 0}
+
+    def flaky(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise KeyboardInterrupt
+        return orig(self, *a, **k)
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(load_scene(p, ["render.spp=8"]), tmp_path / "resumed", **quiet)
+    monkeypatch.setattr(rmod.SceneRenderer, "render_frame", orig)
+    res = render_scene(load_scene(p, ["render.spp=8"]), tmp_path / "resumed", **quiet)
+    assert res.n_rendered == whole.n_frames - 2 and res.n_frames == whole.n_frames
+    names = sorted(f.name for f in (tmp_path / "whole").glob("*.exr"))
+    assert len(names) == whole.n_frames
+    assert sorted(f.name for f in (tmp_path / "resumed").glob("*.exr")) == names
+    for name in names:
+        assert (tmp_path / "resumed" / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+    ratios = [read_frames(tmp_path / "resumed").read(i).header["render_noise_ratio"] for i in range(res.n_frames)]
+    assert ratios[0] == ratios[0] and all(r != r for r in ratios[1:])  # tick 0 measured, the others NaN

@@ -119,9 +119,13 @@ def test_hot_pixel_charge_recovered_within_statistical_error(planted):
 def test_calibration_errors_are_clear():
     true = sensor.SensorProfile.synthetic(4, 8, threshold_e=10)
     d = [np.zeros((10, 4, 8), bool)]
+    d[0][0] = True  # a dark recording where every pixel fires once: dark spike fraction 0.1
     with pytest.raises(sensor.CalibrationError, match=">= 2 brightness levels"):
         calibrate(d, [np.zeros((10, 4, 8), bool)], base=true)
+    dim = [np.zeros((n, 4, 8), bool) for n in (10, 12)]  # two levels (different lengths) below the dark rate
+    for f in dim:
+        f[1, 0, 1] = True
     with pytest.raises(sensor.CalibrationError, match="no flat-field level has a usable signal"):
-        calibrate(d, [np.zeros((10, 4, 8), bool)] * 2, base=true)
+        calibrate(d, dim, base=true)
     with pytest.raises(sensor.CalibrationError, match="base profile"):
         calibrate([np.zeros((10, 2, 8), bool)], [np.zeros((10, 2, 8), bool)] * 2, base=true)
