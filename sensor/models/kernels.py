@@ -26,7 +26,12 @@ This is exact in distribution (not an approximation); only the random numbers
 differ from the step simulator, so the two agree statistically, never bitwise.
 Hot pixels (Eq. 4, Gaussian charge that may be negative, clipped at zero) have
 no such shortcut; the few of them (0.1 % in ``vidar-default``) take the step
-path inside the same kernel, in exactly the order of Algorithm 2.
+path inside the same kernel, in exactly the order of Algorithm 2. Under the crossing
+reset a hot pixel's charge is walked event by event in continuous time; with
+``dark == "current"`` (no dark events) it rises monotonically over any run of
+intervals whose hot current is >= 0, so one Poisson count per such stretch says
+whether it fires there, and a search among the order statistics of the arrivals
+finds when (:func:`_hot_crossing_piece_current`), exact in distribution as well.
 
 ``ideal`` is deterministic: the fast path skips whole pieces while the charge
 stays below threshold and steps otherwise; with one rate per interval it is
