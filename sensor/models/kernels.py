@@ -595,30 +595,26 @@ if HAVE_NUMBA:
         v[h] = vv
 
     @_jit_inline
-    def _last_at_most(c, k, x):
-        """Largest r in 0..k-1 with c[r] <= x (c nondecreasing, c[0] <= x)."""
-        lo = np.int64(0)
-        hi = k
-        while hi - lo > 1:
-            mid = (lo + hi) >> 1
-            if c[mid] <= x:
-                lo = mid
-            else:
-                hi = mid
-        return lo
+    def _last_at_most(c, k, x, r):
+        """Largest r in 0..k-1 with c[r] <= x (c nondecreasing, c[0] <= x), walked from the guess ``r``."""
+        if r > k - 1:
+            r = k - 1
+        while r > 0 and c[r] > x:
+            r -= 1
+        while r < k - 1 and c[r + 1] <= x:
+            r += 1
+        return r
 
     @_jit_inline
-    def _last_below(c, k, y):
-        """Largest r in 0..k-1 with c[r] < y (c nondecreasing, c[0] < y)."""
-        lo = np.int64(0)
-        hi = k
-        while hi - lo > 1:
-            mid = (lo + hi) >> 1
-            if c[mid] < y:
-                lo = mid
-            else:
-                hi = mid
-        return lo
+    def _last_below(c, k, y, r):
+        """Largest r in 0..k-1 with c[r] < y (c nondecreasing, c[0] < y), walked from the guess ``r``."""
+        if r > k - 1:
+            r = k - 1
+        while r > 0 and c[r] >= y:
+            r -= 1
+        while r < k - 1 and c[r + 1] < y:
+            r += 1
+        return r
 
     @_jit_inline
     def _stretch_first_passage(rng, xs, nph, D, g, k, tb, lc, zc, lamv, curv):
@@ -646,6 +642,7 @@ if HAVE_NUMBA:
         uh = 1.0
         fh = zc[k] + g * jh - D
         th = tb[k]  # time of arrival jh (the stretch end while jh = nph + 1)
+        r = k - 1  # the stretch part of the last order statistic drawn
         interp = True
         while jh - jl > 1:
             # the next rank to look at: where the margin's chord crosses 0 (few steps: the margin is close to
@@ -662,7 +659,7 @@ if HAVE_NUMBA:
             width = jh - jl
             um = ul + (uh - ul) * _beta_int(rng, xs, jm - jl, jh - jm)
             x = um * ltot
-            r = _last_at_most(lc, k, x)
+            r = _last_at_most(lc, k, x, r)
             t = tb[r] + (x - lc[r]) / lamv[r] if lamv[r] > 0.0 else tb[r + 1]
             if t > tb[r + 1]:
                 t = tb[r + 1]
@@ -680,7 +677,7 @@ if HAVE_NUMBA:
         y = D - g * jl  # charge the current still has to bring after arrival jl (> 0)
         if zc[k] < y:
             return th
-        r = _last_below(zc, k, y)  # zc[r] < y <= zc[r + 1]: curv[r] > 0
+        r = _last_below(zc, k, y, r)  # zc[r] < y <= zc[r + 1]: curv[r] > 0
         t = tb[r] + (y - zc[r]) / curv[r]
         if t > tb[r + 1]:
             t = tb[r + 1]
@@ -698,7 +695,7 @@ if HAVE_NUMBA:
         :func:`_stretch_first_passage` finds when. After a firing the pixel is blind, the rest of the stretch's
         photoelectrons are not used (the Poisson process after the firing time, a stopping time, is a fresh
         one) and a new stretch starts at the end of the blind time. A stretch stops once its expected charge
-        reaches 1.5 times what is missing (decided from the currents and rates, never from the count it then
+        reaches 1.15 times what is missing (decided from the currents and rates, never from the count it then
         draws). An interval with a negative current (the charge may clip at 0) goes through
         :func:`_hot_crossing_interval`. One Poisson variate per stretch instead of one per interval."""
         for q in range(n):
@@ -733,7 +730,7 @@ if HAVE_NUMBA:
                 tb[k + 1] = t1
                 k += 1
                 r += 1
-                if zc[k] + g * lc[k] >= 1.5 * D:
+                if zc[k] + g * lc[k] >= 1.15 * D:
                     break
             nph = _poisson(rng, xs, lc[k])
             if zc[k] + g * nph < D:  # no firing in the stretch

@@ -241,15 +241,19 @@ def test_crossing_hot_pixel_rate_and_isi_cv_under_dark_current():
     gaps = np.concatenate([np.diff(t) for t in per_pixel])
     assert gaps.min() > 1.0  # one firing per interval at most: a read-out spike is a firing
     ref_m, ref_cv = _isi_mean_and_cv([np.floor(t) for t in per_pixel], 3)
+    # the fast kernel on two equal keyframes (pieces of a whole block: stretches of many intervals) and on one
+    # rate per interval (one-interval stretches)
     H, W, T = 16, 16, 6000
-    s = sensor.simulate(np.full((T, H, W), lam, np.float32), prof(H, W), "elssim", seed=22, implementation="fast")
-    flat = s.reshape(T, -1)
-    fast_m, fast_cv = _isi_mean_and_cv([np.flatnonzero(flat[:, j]) for j in range(H * W)], 3)
-    assert _z(fast_m, ref_m) < Z, (fast_m.mean(), ref_m.mean())
-    assert _z(fast_cv, ref_cv) < Z, (fast_cv.mean(), ref_cv.mean())
+    key = (np.full((2, H, W), lam, np.float32), np.array([0.0, T * sensor.INTERVAL_S]))
+    for rate, t_s in (key, (np.full((T, H, W), lam, np.float32), None)):
+        s = sensor.simulate(rate, prof(H, W), "elssim", seed=22, t_s=t_s, implementation="fast")
+        assert s.shape == (T, H, W)
+        flat = s.reshape(T, -1)
+        fast_m, fast_cv = _isi_mean_and_cv([np.flatnonzero(flat[:, j]) for j in range(H * W)], 3)
+        assert _z(fast_m, ref_m) < Z, (t_s, fast_m.mean(), ref_m.mean())
+        assert _z(fast_cv, ref_cv) < Z, (t_s, fast_cv.mean(), ref_cv.mean())
     # teeth: the CV resolves the hot current's noise (without it, far outside), the mean ISI a 1 % shift
-    s0 = sensor.simulate(np.full((T, H, W), lam, np.float32), prof(H, W, 0.0), "elssim", seed=22,
-                         implementation="fast").reshape(T, -1)
+    s0 = sensor.simulate(key[0], prof(H, W, 0.0), "elssim", seed=22, t_s=key[1], implementation="fast").reshape(T, -1)
     assert _z(_isi_mean_and_cv([np.flatnonzero(s0[:, j]) for j in range(H * W)], 3)[1], ref_cv) > 10 * Z
     assert 0.01 * ref_m.mean() > 3 * Z * np.hypot(ref_m.std(ddof=1) / 8, fast_m.std(ddof=1) / 16)
 
