@@ -259,7 +259,10 @@ class ELSSimCrossingFast(_FastModel):
     interval end); when neither a firing nor the clip at 0 is possible (charge plus all
     photoelectrons plus the positive current stays below theta) only the end charge
     matters, otherwise the arrival times (iid uniform given their number) are walked in
-    order and the current's crossing is solved linearly. Equal in distribution to the reference, never bitwise.
+    order and the current's crossing is solved linearly. With ``dark == "current"`` a hot pixel draws one
+    Poisson count per stretch of intervals whose currents are >= 0 (the charge then only rises) and finds the
+    firing by a search among the arrivals' order statistics (see :mod:`sensor.models.kernels`). Equal in
+    distribution to the reference, never bitwise.
     No lock-step path: bright light costs one Gamma per firing.
     """
 

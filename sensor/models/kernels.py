@@ -26,7 +26,12 @@ This is exact in distribution (not an approximation); only the random numbers
 differ from the step simulator, so the two agree statistically, never bitwise.
 Hot pixels (Eq. 4, Gaussian charge that may be negative, clipped at zero) have
 no such shortcut; the few of them (0.1 % in ``vidar-default``) take the step
-path inside the same kernel, in exactly the order of Algorithm 2.
+path inside the same kernel, in exactly the order of Algorithm 2. Under the crossing
+reset a hot pixel's charge is walked event by event in continuous time; with
+``dark == "current"`` (no dark events) it rises monotonically over any run of
+intervals whose hot current is >= 0, so one Poisson count per such stretch says
+whether it fires there, and a search among the order statistics of the arrivals
+finds when (:func:`_hot_crossing_piece_current`), exact in distribution as well.
 
 ``ideal`` is deterministic: the fast path skips whole pieces while the charge
 stays below threshold and steps otherwise; with one rate per interval it is
@@ -115,6 +120,23 @@ if HAVE_NUMBA:
                 return b * v
             if math.log(u) < 0.5 * x * x + b * (1.0 - v + math.log(v)):
                 return b * v
+
+    @_jit_inline
+    def _gamma_int(rng, xs, a):
+        """Gamma(a, 1) for a >= 1 (:func:`_gamma` with its constants made here)."""
+        b = a - 1.0 / 3.0
+        return _gamma(rng, xs, b, 1.0 / math.sqrt(9.0 * b))
+
+    @_jit_inline
+    def _beta_int(rng, xs, a, b):
+        """Beta(a, b) for integers a, b >= 1: ``U^(1/a)`` when b = 1, ``1 - U^(1/b)`` when a = 1, else
+        ``X / (X + Y)`` with X ~ Gamma(a, 1), Y ~ Gamma(b, 1)."""
+        if b == 1:
+            return _uniform(xs) ** (1.0 / a)
+        if a == 1:
+            return 1.0 - _uniform(xs) ** (1.0 / b)
+        x = _gamma_int(rng, xs, np.float64(a))
+        return x / (x + _gamma_int(rng, xs, np.float64(b)))
 
     @_jit_inline
     def _geometric(rng, inv):
@@ -512,6 +534,218 @@ if HAVE_NUMBA:
             return np.inf
         return rng.standard_exponential() / rate
 
+    @_jit_inline
+    def _hot_crossing_interval(rng, xs, mq, m0, lam, cur, h, g, theta, frh, muh, v, blind, dark_next, out,
+                               scratch):
+        """Hot pixel ``h`` through interval ``mq`` under the crossing reset, window by window (a window ends at the
+        next dark event or the interval end): the photoelectron count of the window, and when a firing or the
+        clip at 0 is possible, its arrivals (iid uniform times given their number) walked in time order, the
+        current's crossing solved linearly. ``cur`` [e-/interval] is the interval's hot current, ``lam``
+        [e-/interval] its photoelectron rate; updates ``v[h]``, ``blind[h]``, ``dark_next[h]``."""
+        m = np.float64(mq)
+        sp = blind[h] if blind[h] > m else m
+        vv = v[h]
+        while sp < m + 1.0:
+            d = dark_next[h]
+            if d < sp:  # fell in the blind time: lost (memoryless: the next one from sp)
+                d = sp + _exp_gap(rng, muh)
+                dark_next[h] = d
+            wend = d if d < m + 1.0 else m + 1.0
+            L = wend - sp
+            nph = _poisson(rng, xs, lam * L)  # photoelectrons in the window
+            tau = np.inf
+            if vv + g * nph + (cur if cur > 0.0 else 0.0) * L < theta and (cur >= 0.0 or vv + cur * L >= 0.0):
+                # no firing and no clipping possible in the window: only the end charge matters
+                vv = vv + g * nph + cur * L
+            else:  # walk the arrivals in time order
+                ne = np.int64(nph)
+                arr = scratch if ne < scratch.size else np.empty(ne + 1)
+                for e in range(ne):
+                    arr[e] = sp + L * _uniform(xs)
+                arr[:ne].sort()
+                arr[ne] = wend
+                t0 = sp
+                for e in range(ne + 1):
+                    tn = arr[e]
+                    if cur > 0.0 and vv + cur * (tn - t0) >= theta:
+                        tau = t0 + (theta - vv) / cur
+                        break
+                    vv = vv + cur * (tn - t0)
+                    if vv < 0.0:
+                        vv = 0.0
+                    t0 = tn
+                    if e < ne:
+                        vv += g
+                        if vv >= theta:
+                            tau = tn
+                            break
+            if tau == np.inf and d < m + 1.0:
+                tau = d
+            if tau == np.inf:
+                break
+            mi = np.int64(tau)
+            if mi > mq:
+                mi = mq
+            out[mi - m0, h >> 3] |= np.uint8(1 << (h & 7))
+            vv = 0.0
+            sp = tau + frh
+            blind[h] = sp
+            if dark_next[h] <= sp:
+                dark_next[h] = sp + _exp_gap(rng, muh)
+        v[h] = vv
+
+    @_jit_inline
+    def _last_at_most(c, k, x, r):
+        """Largest r in 0..k-1 with c[r] <= x (c nondecreasing, c[0] <= x), walked from the guess ``r``."""
+        if r > k - 1:
+            r = k - 1
+        while r > 0 and c[r] > x:
+            r -= 1
+        while r < k - 1 and c[r + 1] <= x:
+            r += 1
+        return r
+
+    @_jit_inline
+    def _last_below(c, k, y, r):
+        """Largest r in 0..k-1 with c[r] < y (c nondecreasing, c[0] < y), walked from the guess ``r``."""
+        if r > k - 1:
+            r = k - 1
+        while r > 0 and c[r] >= y:
+            r -= 1
+        while r < k - 1 and c[r + 1] < y:
+            r += 1
+        return r
+
+    @_jit_inline
+    def _stretch_first_passage(rng, xs, nph, D, g, k, tb, lc, zc, lamv, curv):
+        """First time [intervals] at which a hot pixel's charge, rising from ``theta - D`` (``D > 0``), reaches
+        theta in a stretch of ``k`` intervals (or parts of intervals) with currents >= 0, given that its
+        ``nph`` photoelectrons reach it: ``zc[k] + g nph >= D``.
+
+        Stretch part r runs from ``tb[r]`` to ``tb[r + 1]`` with photoelectron rate ``lamv[r]`` and current
+        ``curv[r]`` [e-/interval]; ``lc``, ``zc`` are the cumulative expected photoelectrons and current charge
+        at the part starts (``lc[0] = zc[0] = 0``). The photoelectrons are a Poisson process: given their
+        number, their rescaled times ``Lambda(T_j) / lc[k]`` are the order statistics of ``nph`` uniforms. The
+        charge ``Z(t) + g N(t)`` only rises, so the firing comes at arrival j iff
+        ``c_j: Z(T_j) + g j >= D``, false up to some j' and true after (T_j and Z increase with j); a
+        bisection finds J = j' + 1 from O(log nph) order statistics, each drawn given the two around it (the
+        j-th of the uniforms between known ones at ranks j_l < j < j_h, values u_l < u_h, is
+        ``u_l + (u_h - u_l) Beta(j - j_l, j_h - j)``). Between T_j' and T_J (the stretch end when
+        J = nph + 1) only the current moves the charge: the firing is the earlier of T_J and the time the
+        current brings Z to ``D - g j'``. Exact in distribution: the walk over every arrival, drawing only the
+        arrivals it looks at."""
+        ltot = lc[k]
+        jl = np.int64(0)
+        ul = 0.0
+        fl = -D  # c_j's margin, Z(T_j) + g j - D, at the known ranks jl (< 0) and jh (>= 0)
+        jh = np.int64(nph) + 1
+        uh = 1.0
+        fh = zc[k] + g * jh - D
+        th = tb[k]  # time of arrival jh (the stretch end while jh = nph + 1)
+        r = k - 1  # the stretch part of the last order statistic drawn
+        interp = True
+        while jh - jl > 1:
+            # the next rank to look at: where the margin's chord crosses 0 (few steps: the margin is close to
+            # linear in j), the middle after a step that did not halve the bracket. Any rule that uses only what
+            # is drawn keeps the law.
+            if interp:
+                jm = jl + np.int64((jh - jl) * (-fl / (fh - fl)) + 0.5)
+                if jm <= jl:
+                    jm = jl + 1
+                elif jm >= jh:
+                    jm = jh - 1
+            else:
+                jm = (jl + jh) >> 1
+            width = jh - jl
+            um = ul + (uh - ul) * _beta_int(rng, xs, jm - jl, jh - jm)
+            x = um * ltot
+            r = _last_at_most(lc, k, x, r)
+            t = tb[r] + (x - lc[r]) / lamv[r] if lamv[r] > 0.0 else tb[r + 1]
+            if t > tb[r + 1]:
+                t = tb[r + 1]
+            fm = zc[r] + curv[r] * (t - tb[r]) + g * jm - D
+            if fm >= 0.0:
+                jh = jm
+                uh = um
+                fh = fm
+                th = t
+            else:
+                jl = jm
+                ul = um
+                fl = fm
+            interp = 2 * (jh - jl) <= width
+        y = D - g * jl  # charge the current still has to bring after arrival jl (> 0)
+        if zc[k] < y:
+            return th
+        r = _last_below(zc, k, y, r)  # zc[r] < y <= zc[r + 1]: curv[r] > 0
+        t = tb[r] + (y - zc[r]) / curv[r]
+        if t > tb[r + 1]:
+            t = tb[r + 1]
+        return t if t < th else th
+
+    @_jit_inline
+    def _hot_crossing_piece_current(rng, xs, a, n, m0, l0, sl, h, g, hmu, hsig, theta, frh, v, blind, dark_next,
+                                    out, scratch, curq, tb, lc, zc, lamv, curv):
+        """Hot pixel ``h`` through one piece (intervals ``a .. a + n - 1``, photoelectron rate ``l0 + sl q``
+        [e-/interval], the dark current included) with ``dark == "current"`` (no dark events), in stretches.
+
+        A stretch is a run of intervals whose hot current (drawn first, one per interval, as the step path)
+        is >= 0, from the current time; the charge then only rises, so it fires in the stretch iff its end
+        charge (current charge plus ``g`` times one Poisson count of the whole stretch) reaches theta, and
+        :func:`_stretch_first_passage` finds when. After a firing the pixel is blind, the rest of the stretch's
+        photoelectrons are not used (the Poisson process after the firing time, a stopping time, is a fresh
+        one) and a new stretch starts at the end of the blind time. A stretch stops once its expected charge
+        reaches 1.15 times what is missing (decided from the currents and rates, never from the count it then
+        draws). An interval with a negative current (the charge may clip at 0) goes through
+        :func:`_hot_crossing_interval`. One Poisson variate per stretch instead of one per interval."""
+        for q in range(n):
+            curq[q] = (hmu + hsig * rng.standard_normal()) * theta
+        q = np.int64(0)
+        while q < n:
+            m = np.float64(a + q)
+            sp = blind[h] if blind[h] > m else m
+            if sp >= m + 1.0:
+                q += 1
+                continue
+            if curq[q] < 0.0:
+                _hot_crossing_interval(rng, xs, a + q, m0, l0 + sl * q, curq[q], h, g, theta, frh, 0.0, v, blind,
+                                       dark_next, out, scratch)  # no dark events: dark_next stays +inf
+                q += 1
+                continue
+            vv = v[h]
+            D = theta - vv
+            k = np.int64(0)
+            tb[0] = sp
+            lc[0] = 0.0
+            zc[0] = 0.0
+            r = q
+            while r < n and curq[r] >= 0.0:
+                t1 = np.float64(a + r + 1)
+                ln = t1 - tb[k]
+                lam = l0 + sl * r
+                lamv[k] = lam
+                curv[k] = curq[r]
+                lc[k + 1] = lc[k] + lam * ln
+                zc[k + 1] = zc[k] + curq[r] * ln
+                tb[k + 1] = t1
+                k += 1
+                r += 1
+                if zc[k] + g * lc[k] >= 1.15 * D:
+                    break
+            nph = _poisson(rng, xs, lc[k])
+            if zc[k] + g * nph < D:  # no firing in the stretch
+                v[h] = vv + zc[k] + g * nph
+                q = r
+                continue
+            tau = _stretch_first_passage(rng, xs, nph, D, g, k, tb, lc, zc, lamv, curv)
+            mi = np.int64(tau)
+            if mi > a + r - 1:
+                mi = a + r - 1
+            out[mi - m0, h >> 3] |= np.uint8(1 << (h & 7))
+            v[h] = 0.0
+            blind[h] = tau + frh
+            q = mi - a
+
     @_jit
     def crossing_tile(rng, xs, R, start, length, lo_, nk_, w, m0, p0, p1, hot_idx, gb, gc, fr, mu, gain,
                        hot_mu, hot_sigma, theta, rem, dark_next, blind, guard, v, out, dc, use_dc):
@@ -623,6 +857,14 @@ if HAVE_NUMBA:
                     guard[p] = -np.inf if blind[p] > fend else dn
         # ---- hot pixels: event by event in continuous time
         scratch = np.empty(256)
+        if use_dc:  # per-stretch buffers (a stretch lies in one piece)
+            nmax = np.int64(length.max()) + 1 if npc else np.int64(1)
+            curq = np.empty(nmax)
+            tb = np.empty(nmax)
+            lc = np.empty(nmax)
+            zc = np.empty(nmax)
+            lamv = np.empty(nmax)
+            curv = np.empty(nmax)
         for i in range(npc):
             a = m0 + start[i]
             n = length[i]
@@ -630,65 +872,15 @@ if HAVE_NUMBA:
             nk = nk_[i]
             for h in hot_idx:
                 s, l0, sl = _piece_coeffs_dc(R, w, i, lo, nk, h, n, dc, use_dc)
+                if use_dc:
+                    _hot_crossing_piece_current(rng, xs, a, n, m0, l0, sl, h, gain[h], hot_mu[h], hot_sigma[h],
+                                                theta, fr[h], v, blind, dark_next, out, scratch, curq, tb, lc, zc,
+                                                lamv, curv)
+                    continue
                 for q in range(n):
-                    m = np.float64(a + q)
-                    lam = l0 + sl * q
                     cur = (hot_mu[h] + hot_sigma[h] * rng.standard_normal()) * theta
-                    sp = blind[h] if blind[h] > m else m
-                    vv = v[h]
-                    while sp < m + 1.0:
-                        d = dark_next[h]
-                        if d < sp:  # fell in the blind time: lost (memoryless: the next one from sp)
-                            d = sp + _exp_gap(rng, mu[h])
-                            dark_next[h] = d
-                        wend = d if d < m + 1.0 else m + 1.0
-                        L = wend - sp
-                        nph = _poisson(rng, xs, lam * L)  # photoelectrons in the window
-                        tau = np.inf
-                        if vv + gain[h] * nph + (cur if cur > 0.0 else 0.0) * L < theta and \
-                                (cur >= 0.0 or vv + cur * L >= 0.0):
-                            # no firing and no clipping possible in the window: only the end charge matters
-                            vv = vv + gain[h] * nph + cur * L
-                        else:  # walk the arrivals (iid uniform times given their number), in time order
-                            ne = np.int64(nph)
-                            arr = scratch if ne < scratch.size else np.empty(ne + 1)
-                            for e in range(ne):  # insertion sort as they are drawn (few: ~lambda)
-                                u = sp + L * _uniform(xs)
-                                j = e
-                                while j > 0 and arr[j - 1] > u:
-                                    arr[j] = arr[j - 1]
-                                    j -= 1
-                                arr[j] = u
-                            arr[ne] = wend
-                            t0 = sp
-                            for e in range(np.int64(nph) + 1):
-                                tn = arr[e]
-                                if cur > 0.0 and vv + cur * (tn - t0) >= theta:
-                                    tau = t0 + (theta - vv) / cur
-                                    break
-                                vv = vv + cur * (tn - t0)
-                                if vv < 0.0:
-                                    vv = 0.0
-                                t0 = tn
-                                if e < nph:
-                                    vv += gain[h]
-                                    if vv >= theta:
-                                        tau = tn
-                                        break
-                        if tau == np.inf and d < m + 1.0:
-                            tau = d
-                        if tau == np.inf:
-                            break
-                        mi = np.int64(tau)
-                        if mi > a + q:
-                            mi = a + q
-                        out[mi - m0, h >> 3] |= np.uint8(1 << (h & 7))
-                        vv = 0.0
-                        sp = tau + fr[h]
-                        blind[h] = sp
-                        if dark_next[h] <= sp:
-                            dark_next[h] = sp + _exp_gap(rng, mu[h])
-                    v[h] = vv
+                    _hot_crossing_interval(rng, xs, a + q, m0, l0 + sl * q, cur, h, gain[h], theta, fr[h], mu[h],
+                                           v, blind, dark_next, out, scratch)
 
 
 if HAVE_NUMBA:

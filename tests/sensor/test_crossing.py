@@ -207,9 +207,10 @@ def test_window_count_fano_factor_matches_the_phase_chain(impl, slow_scale):
 
 
 # ------------------------------------------------------------------------------------------ ISI laws
-def inter_firing_times(model, lam, T, seed):
-    """Exact continuous-time gaps [intervals] between consecutive firings of each pixel of a reference
-    crossing model (``record_crossings``) run for ``T`` intervals of constant light ``lam`` [e-/interval]."""
+def firing_times(model, lam, T, seed):
+    """Exact continuous firing times [intervals] of a reference crossing model (``record_crossings``) run for
+    ``T`` intervals of constant light ``lam`` [e-/interval]: (pixel index, time) arrays, sorted by pixel, then
+    time."""
     model.record_crossings = True
     st = model.init_state()
     H, W = model.profile.shape
@@ -217,7 +218,13 @@ def inter_firing_times(model, lam, T, seed):
     pix = np.concatenate([p for p, _ in st["crossings"]])
     tim = np.concatenate([t for _, t in st["crossings"]])
     order = np.lexsort((tim, pix))
-    pix, tim = pix[order], tim[order]
+    return pix[order], tim[order]
+
+
+def inter_firing_times(model, lam, T, seed):
+    """Exact continuous-time gaps [intervals] between consecutive firings of each pixel of a reference
+    crossing model (``record_crossings``) run for ``T`` intervals of constant light ``lam`` [e-/interval]."""
+    pix, tim = firing_times(model, lam, T, seed)
     return np.diff(tim)[pix[1:] == pix[:-1]]
 
 
