@@ -252,7 +252,7 @@ def test_scene_values_are_checked_with_the_scene_validators(cli, tmp_path):
             "params": {"speed_px_per_ms": [0.1, 0.5]}, "seeds": [0]}
     cases = [({"params": {"speed_px_per_ms": [0.1, 0.1]}}, "'params.speed_px_per_ms.1'", "twice"),
              ({"params": {"warp_factor": [1.0]}}, "'params.warp_factor.0'", "warp_factor"),
-             ({"duration_s": 1e-5}, "'duration_s'", "shorter than one interval"),
+             ({"duration_s": 1e-5}, "'duration_s'", "shorter than one read-out interval"),
              ({"set": ["render.spp=-4"]}, "'set.0'", "render.spp"),
              ({"set": ["render.spp=4", "render.spp=8"]}, "'set.1'", "twice"),
              ({"scenes": ["translating_object", "translating_object"]}, "'scenes.1'", "same scene"),
