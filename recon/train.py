@@ -137,7 +137,7 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
 
 
 def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None = None, resume: bool = False,
-          init_checkpoint=None, add_head: bool = False, run_info: dict | None = None,
+          init_checkpoint=None, add_head: bool = False, head_sigmas=None, run_info: dict | None = None,
           progress: bool = True) -> dict:
     """Train (or resume) an RSIR-architecture network on ``dataset``; returns a summary dict.
 
@@ -163,6 +163,10 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         the checkpoint's network when it has none (its weights are kept; the
         head starts at equal weights). ``train_config.train_only = "head"``
         then trains the head alone on the fixed network.
+    head_sigmas : sequence of float, optional
+        With ``add_head``: the widths [pixels] of the head's smoothed classic
+        candidates (``RSIRConfig.head_sigmas``); a head of the checkpoint is
+        then replaced by a new one with these widths.
     run_info : dict
         Stored in config.json (data spec, noise model, command).
     """
@@ -208,8 +212,8 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
             if model.config.normalise == "fixed" and cfg.train_only != "head":
                 # adopt the new data's light level (the weights stay); not when the network is to stay as it is
                 model.config.intensity_scale = estimate_intensity_scale(dataset)
-            if add_head and model.head is None:  # the checkpoint's network plus a new output head
-                model = _with_head(model, cfg.seed, device)
+            if add_head and (model.head is None or head_sigmas is not None):  # the network plus a new head
+                model = _with_head(model, cfg.seed, device, head_sigmas)
         else:
             nc = net_config or RSIRConfig.tiny()
             if nc.normalise == "fixed" and nc.intensity_scale == 1.0:
@@ -315,16 +319,19 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
     return summary
 
 
-def _with_head(model, seed: int, device):
-    """A copy of ``model`` with an output head added (same weights; the head seeded by ``seed``)."""
+def _with_head(model, seed: int, device, head_sigmas=None):
+    """A copy of ``model`` with a new output head (same weights otherwise; the head seeded by ``seed``;
+    ``head_sigmas``: its candidates' widths, default the config's)."""
     import torch
 
     from .nets import RSIRConfig, RSIRNet
-    cfg = RSIRConfig.from_dict({**model.config.to_dict(), "head": True})
+    extra = {"head_sigmas": list(head_sigmas)} if head_sigmas is not None else {}
+    cfg = RSIRConfig.from_dict({**model.config.to_dict(), "head": True, **extra})
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
         new = RSIRNet(cfg).to(device)
-    missing, unexpected = new.load_state_dict(model.state_dict(), strict=False)
+    trunk = {k: v for k, v in model.state_dict().items() if not k.startswith("head.")}
+    missing, unexpected = new.load_state_dict(trunk, strict=False)
     if unexpected or any(not k.startswith("head.") for k in missing):
         raise InputError(f"could not add a head to the checkpoint's network (missing {missing}, unexpected "
                          f"{unexpected})", field="--head")

@@ -72,6 +72,10 @@ def register(subparsers) -> None:
                    help="add the output head: per-pixel weights over the network's image and Gaussian-smoothed "
                         "classic estimates (see docs/recon.md, 'The output head'); allowed with --init (the "
                         "checkpoint's network plus a new head)")
+    p.add_argument("--head-sigmas", metavar="LIST", type=_sigmas,
+                   help="with --head: widths [pixels] of the head's Gaussian-smoothed classic candidates, e.g. "
+                        "0,0.75,1.5,3,6,12 (default 0,0.75,1.5,3,6); with --init, a head of the checkpoint is "
+                        "replaced by a new one of these widths")
     p.add_argument("--train-only", choices=["head"],
                    help="train only the output head, keeping the rest of the network fixed (with --init "
                         "CKPT --head: a few CPU minutes)")
@@ -105,6 +109,19 @@ def clear_run(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
 
 
+def _sigmas(text: str) -> list:
+    """``--head-sigmas``: comma-separated widths >= 0 [pixels]."""
+    import argparse
+    import math
+    try:
+        v = [float(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated widths in pixels, got '{text}'") from None
+    if not v or any(not math.isfinite(x) or x < 0 for x in v):
+        raise argparse.ArgumentTypeError(f"expected finite widths >= 0 [pixels], got '{text}'")
+    return v
+
+
 def run(args) -> int:
     import sys
 
@@ -134,6 +151,8 @@ def run(args) -> int:
         extra = ["--head"] * args.head + ["--train-only"] * bool(args.train_only)
         raise InputError(f"--resume continues the stored network and training settings; drop "
                          f"{', '.join(given + extra)}", field="--resume")
+    if args.head_sigmas is not None and not args.head:
+        raise InputError("--head-sigmas sets the widths of the output head: add --head", field="--head-sigmas")
     if args.train_only and not args.init:
         raise InputError("--train-only head keeps the rest of the network as it is: start from a trained one with "
                          "--init CKPT --head", field="--train-only")
@@ -153,7 +172,7 @@ def run(args) -> int:
     info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv),
             "size": args.size or "tiny"}
     summary = train(ds, args.out, net_config=net, train_config=cfg, resume=args.resume, init_checkpoint=args.init,
-                    add_head=args.head, run_info=info, progress=not args.quiet)
+                    add_head=args.head, head_sigmas=args.head_sigmas, run_info=info, progress=not args.quiet)
     print(f"trained {summary['steps_done']} steps in {summary['elapsed_s'] / 60:.1f} min on {summary['device']}; "
           f"final loss {summary['final_loss']:.4g}; model: {summary['model']}")
     return 0

@@ -163,6 +163,23 @@ def test_network_with_head_keeps_the_trunk_and_head_only_training_changes_only_t
         rsir_loss(base, base(windows, maps), target, head_only=True)
 
 
+def test_a_head_of_other_widths_replaces_the_checkpoints_head_and_keeps_the_trunk():
+    from recon.train import _with_head
+    net = _with_head(_tiny(), seed=1, device="cpu")
+    wide = _with_head(net, seed=2, device="cpu", head_sigmas=(0.0, 3.0, 12.0))
+    assert wide.config.head_sigmas == (0.0, 3.0, 12.0) and net.config.head_sigmas != wide.config.head_sigmas
+    old, new = net.state_dict(), wide.state_dict()
+    for k, v in new.items():
+        if not k.startswith("head."):
+            assert torch.equal(v, old[k]), k
+    # one candidate per width plus the network's image
+    rng = np.random.default_rng(0)
+    windows = torch.from_numpy(rng.uniform(0, 0.3, (1, 10, 16, 16)).astype(np.float32))
+    with torch.no_grad():
+        out = wide(windows, None)
+    assert out["head_weights"].shape[1] == 4
+
+
 def test_head_config_round_trips_and_checks_widths():
     cfg = RSIRConfig.tiny(head=True, head_sigmas=[0, 1.5])
     assert cfg.head_sigmas == (0.0, 1.5)
