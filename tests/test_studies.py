@@ -127,3 +127,17 @@ def test_a_network_checkpoint_is_a_method(frames, tmp_path):
     assert {r["method"] for r in rows} == {"TFP (M=320)", "tiny net", NOISE_FREE_LABEL}
     with pytest.raises(sensor.InputError, match="window 320"):
         plan_lux_sweep(frames, [50.0], ["elssim"], [0], window=64, methods=[f"rsir:{ckpt}"])
+
+
+def test_the_ideal_models_profile_is_the_one_its_spikes_obey():
+    """ideal spikes have no dark floor: the dead-time correction must not take one off (nor PRNU, hot pixels)."""
+    from recon.classic import deadtime_correct
+    prof = profile_for("vidar-default", (6, 8), "ideal")
+    assert prof.reset == "interval" and not prof.dark_spike_rate.any() and not prof.hot_mask.any()
+    assert np.all(prof.prnu_gain == 1.0) and not np.any(prof.refractory_s)
+    assert profile_for("vidar-default", (6, 8), "elssim").dark_spike_rate.min() > 0
+    lam = prof.threshold_e / 9.5  # fires every ceil(9.5) = 10 intervals
+    spikes = sensor.simulate(np.full((400, 6, 8), lam, np.float32), prof, "ideal")
+    est = deadtime_correct(spikes.mean(axis=0, dtype=np.float32), prof)
+    # the interval-reset law of a rate of 1/10: any light in (theta / 10, theta / 9] gives it
+    assert np.all(est > prof.threshold_e / 10.5) and np.all(est <= prof.threshold_e / 9 * 1.001)

@@ -46,11 +46,25 @@ def parse_model_spec(spec: str) -> tuple[str, str | None]:
 
 
 def profile_for(profile, shape, model_spec: str = "elssim"):
-    """The sensor for frames of ``shape`` (H, W): centre window of ``profile``, with the spec's reset option."""
+    """The sensor for frames of ``shape`` (H, W): centre window of ``profile``, with the spec's reset option.
+
+    For ``ideal`` (Algorithm 1: no dark current, PRNU, hot pixels or blind time; the charge is dropped at
+    each firing) the profile is the one its spikes obey, so that the dead-time correction of the
+    reconstruction methods does not take off a dark floor the spikes do not have: the same threshold and
+    geometry, reset ``interval``, no dark, PRNU 1, no hot pixels, refractory 0.
+    """
+    import numpy as np
+
     from sensor.models.spec import parse_model_spec as parse
     from sensor.profile import SensorProfile
     prof = profile if isinstance(profile, SensorProfile) else SensorProfile.load(profile)
-    return parse(model_spec).profile(prof.centred(*shape))
+    spec = parse(model_spec)
+    prof = spec.profile(prof.centred(*shape))
+    if spec.name == "ideal":
+        z = np.zeros(prof.shape, np.float32)
+        prof = prof.replace(reset="interval", dark_rate=z, dark_current_e=z, prnu_gain=np.ones(prof.shape, np.float32),
+                            hot_mask=np.zeros(prof.shape, bool), hot_mu=z, hot_sigma=z, refractory_s=z)
+    return prof
 
 
 def preroll_keyframes(rate_kf, t_s, preroll: int, seed: int, interval_s: float):
