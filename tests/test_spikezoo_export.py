@@ -21,7 +21,8 @@ def _frames(folder: Path, phase: float) -> Path:
     base = np.stack([0.3 + 0.25 * np.sin(2 * np.pi * (xx - 300 * ti + phase) / 12) + 0.02 * yy for ti in t])
     prof = sensor.SensorProfile.load("vidar-default")
     phi = base * 900 / (prof.pixel_pitch_m ** 2 * prof.fill_factor * prof.interval_s)
-    sensor.write_frames(folder, phi.astype(np.float32), t, manifest={"illuminance_lux": 100.0})
+    # the manifest names the pattern: a frames source's render key is the hash of its frames.json
+    sensor.write_frames(folder, phi.astype(np.float32), t, manifest={"illuminance_lux": 100.0, "pattern": phase})
     return folder
 
 

@@ -30,6 +30,8 @@ refused unless --overwrite (which makes the dataset afresh).
 Runs on Dask: a LocalCluster of --workers processes by default, an existing
 cluster with --scheduler tcp://HOST:8786, or in this process with --workers 0.
 Train on the result with `render2spike train --data rendered:DIR`.
+--export spikezoo[=FOLDER] then writes the finished samples as Spike-Zoo /
+SpikeCV pairs (docs/studies.md, "Export for Spike-Zoo and SpikeCV").
 """
 EXAMPLES = """\
 examples:
