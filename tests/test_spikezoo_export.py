@@ -119,6 +119,11 @@ def test_cli_exports_after_the_run_and_refuses_before_it(dataset, tmp_path, cli)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--overwrite" in r.stderr
     r = cli("dataset", str(spec_path), "--out", str(dataset), "--workers", "0", "--quiet", "--export", "zoo")
     assert r.returncode == 2 and "spikezoo" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    for bad, word in ((("--export", "spikezoo="), "folder"), (("--export", "spikezoo", "--export-test-fraction", "2"),
+                                                              "--export-test-fraction")):
+        r = cli("dataset", str(spec_path), "--out", str(dataset), "--workers", "0", "--quiet", *bad)
+        assert r.returncode == 2 and word in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (dataset / "spikezoo").exists()
     r = cli("dataset", str(spec_path), "--out", str(dataset), "--workers", "0", "--quiet",
             "--export", f"spikezoo={tmp_path / 'new'}", "--export-intervals", str(L))
     assert r.returncode == 0, r.stderr
