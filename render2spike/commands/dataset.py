@@ -30,6 +30,8 @@ refused unless --overwrite (which makes the dataset afresh).
 Runs on Dask: a LocalCluster of --workers processes by default, an existing
 cluster with --scheduler tcp://HOST:8786, or in this process with --workers 0.
 Train on the result with `render2spike train --data rendered:DIR`.
+--export spikezoo[=FOLDER] then writes the finished samples as Spike-Zoo /
+SpikeCV pairs (docs/studies.md, "Export for Spike-Zoo and SpikeCV").
 """
 EXAMPLES = """\
 examples:
@@ -37,6 +39,7 @@ examples:
   render2spike dataset spec.yaml --out data/trans --workers 2
   render2spike dataset spec.yaml --out data/big --scheduler tcp://head-node:8786
   render2spike train --data rendered:data/trans:crop=48x48 --out runs/trans --steps 200
+  render2spike dataset spec.yaml --out data/trans --export spikezoo     (Spike-Zoo pairs in data/trans/spikezoo)
 
 a small spec.yaml:
   scenes: [translating_object]
@@ -67,6 +70,14 @@ def register(sub) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace what --out holds: a dataset of another spec, other files, or this spec's dataset "
                         "(made afresh); without it such a folder is refused and a dataset of this spec is resumed")
+    p.add_argument("--export", metavar="spikezoo[=FOLDER]",
+                   help="then write the finished samples as Spike-Zoo / SpikeCV pairs (train|test/spike/NAME.dat, "
+                        "train|test/gt/NAME.png, export.json) in FOLDER (default DIR/spikezoo; an existing one is "
+                        "refused unless --overwrite)")
+    p.add_argument("--export-intervals", type=_whole(1, "intervals per exported spike file"), default=301,
+                   metavar="N", help="intervals per exported spike file, centred on the ground truth (default: 301)")
+    p.add_argument("--export-test-fraction", type=float, default=0.2, metavar="F",
+                   help="fraction of the renders whose pairs go to test/ (default: 0.2)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -91,7 +102,16 @@ def run(args) -> int:
         raise InputError("expected a folder name, got ''", field="--out")
     resources = parse_resources(args.resources)
     check_run_options(args.workers, args.retries, resources, args.scheduler)
+    export = None
+    if args.export is not None:
+        from render2spike.dataset_export import check_export_target, parse_export
+        export = check_export_target(parse_export(args.export, args.out)[1], args.out, args.overwrite,
+                                     intervals=args.export_intervals, test_fraction=args.export_test_fraction)
     res = build_dataset(args.spec, args.out, scheduler=args.scheduler, workers=args.workers, retries=args.retries,
                         resources=resources, progress=not args.quiet, overwrite=args.overwrite)
     print((res.out / "summary.md").read_text())
+    if export is not None:
+        from render2spike.dataset_export import export_spikezoo
+        export_spikezoo(args.out, export, intervals=args.export_intervals, test_fraction=args.export_test_fraction,
+                        overwrite=args.overwrite)
     return 1 if res.failed else 0
