@@ -555,10 +555,25 @@ def _load_source_scene(s: SampleSpec, cache: dict | None = None):
         raise InputError(f"sample {s.index}: {exc}", field="scenes") from None
 
 
+def _frames_key(folder, man_bytes: bytes) -> str:
+    """Content hash of a frames folder: its manifest and every frame file it lists (their bytes), so two
+    folders of the same manifest but other pixels are two renders."""
+    h = hashlib.sha256(man_bytes)
+    for f in json.loads(man_bytes).get("frames", []):
+        fp = Path(folder) / str(f.get("file", ""))
+        h.update(fp.name.encode())
+        if fp.is_file():
+            with open(fp, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 22), b""):
+                    h.update(chunk)
+    return "f" + h.hexdigest()[:15]
+
+
 def render_key(s: SampleSpec) -> str:
     """Content hash of what the frames depend on (scene data and files, overrides, duration; not the lux)."""
     if "frames" in s.source:
-        return "f" + _hash({"frames": (Path(s.source["frames"]) / "frames.json").read_bytes().hex()})[:15]
+        folder = Path(s.source["frames"])
+        return _frames_key(folder, (folder / "frames.json").read_bytes())
     return _load_source_scene(s).content_hash({"dataset_render": 1})
 
 
@@ -645,7 +660,7 @@ def _inspect_render(s: SampleSpec, spec: dict, path, cache: dict) -> _Render:
     if "frames" in s.source:
         man_bytes = (Path(s.source["frames"]) / "frames.json").read_bytes()
         man = json.loads(man_bytes)
-        key = "f" + _hash({"frames": man_bytes.hex()})[:15]
+        key = _frames_key(s.source["frames"], man_bytes)
         times = [float(f["time_s"]) for f in man["frames"]]
         return _Render(key, (int(man["height"]), int(man["width"])),
                        s.source.get("profile") or (man.get("profile") or {}).get("spec"), max(times) - min(times))

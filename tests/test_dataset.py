@@ -454,3 +454,20 @@ def test_frames_folders_with_a_broken_manifest_are_refused(cli, frames, tmp_path
     (d / "frames.json").write_text("{not json")
     _refused(cli, _write_spec(tmp_path, frames, _tiny(d)), tmp_path / "out", field="'scenes.0.frames'",
              contains=("not a readable frames manifest",))
+
+
+def test_a_frames_folders_key_covers_its_pixels_not_only_its_manifest(tmp_path):
+    """Two frames folders with the same manifest but other pixels are two renders (two sample ids)."""
+    import shutil
+
+    from render2spike.dataset import _frames_key
+    a, c = tmp_path / "a", tmp_path / "c"
+    sensor.write_frames(a, np.full((2, 4, 6), 1e15, np.float32), [0.0, 0.001])
+    sensor.write_frames(c, np.full((2, 4, 6), 2e15, np.float32), [0.0, 0.001])
+    b = tmp_path / "b"
+    shutil.copytree(a, b)
+    man = (a / "frames.json").read_bytes()
+    assert _frames_key(a, man) == _frames_key(b, man)  # a copy is the same render
+    first = sorted(p.name for p in a.glob("*.exr"))[0]
+    shutil.copy(c / first, b / first)
+    assert (b / "frames.json").read_bytes() == man and _frames_key(a, man) != _frames_key(b, man)
