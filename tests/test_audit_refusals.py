@@ -1,0 +1,48 @@
+"""Refusals found by an audit of the CLI: one line naming the file/option, exit code 2, nothing left behind."""
+
+import numpy as np
+import pytest
+
+
+def _tree(root):
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+def _refused(cli, root, *argv, names=()):
+    before = _tree(root)
+    r = cli(*argv)
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert r.returncode == 2, r.stderr
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    for n in names:
+        assert n in r.stderr, (n, r.stderr)
+    assert _tree(root) == before, "a refusal left something behind"
+    return r.stderr
+
+
+@pytest.mark.parametrize("value", [3e38, 2e9])
+@pytest.mark.parametrize("model", ["isi", "elssim"])
+def test_simulate_refuses_absurd_rates(cli, tmp_path, value, model):
+    np.savez(tmp_path / "rate.npz", rate_e=np.full((20, 8, 8), value, np.float32))
+    err = _refused(cli, tmp_path, "simulate", tmp_path / "rate.npz", "--out", tmp_path / "sim" / "x" / "e.npz",
+                   "--quiet", "--model", model, names=("rate.npz", "rate_e", "1e+09"))
+    assert "above" in err
+
+
+def test_simulate_refuses_complex_rates(cli, tmp_path):
+    np.savez(tmp_path / "rate.npz", rate_e=np.full((20, 8, 8), 3 + 1j, np.complex64))
+    _refused(cli, tmp_path, "simulate", tmp_path / "rate.npz", "--out", tmp_path / "sim" / "e.npz", "--quiet",
+             names=("rate.npz", "rate_e", "complex64"))
+
+
+def test_rate_checks_refuse_absurd_and_complex_rates():
+    from sensor.errors import InputError
+    from sensor.io.reader import ArraySource
+    from sensor.rates import RateSchedule, check_rates
+    with pytest.raises(InputError, match="above"):
+        check_rates(np.full((2, 2, 2), 1.5e9, np.float32))
+    check_rates(np.full((2, 2, 2), 1e9, np.float32))  # the bound itself is accepted
+    with pytest.raises(InputError, match="complex"):
+        RateSchedule(per_interval=True).add(np.ones((2, 2, 2), np.complex128))
+    with pytest.raises(InputError, match="complex"):
+        ArraySource(np.ones((2, 2, 2), np.complex64))
