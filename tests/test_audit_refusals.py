@@ -46,3 +46,16 @@ def test_rate_checks_refuse_absurd_and_complex_rates():
         RateSchedule(per_interval=True).add(np.ones((2, 2, 2), np.complex128))
     with pytest.raises(InputError, match="complex"):
         ArraySource(np.ones((2, 2, 2), np.complex64))
+
+
+def test_calibrate_out_without_suffix_is_the_npz_and_is_not_overwritten(cli, tmp_path):
+    from tests.sensor.test_from_rsir import synth_maps
+    np.savez(tmp_path / "maps.npz", **synth_maps(2))
+    assert cli("calibrate", "--from-rsir", tmp_path / "maps.npz", "--out", tmp_path / "keep").returncode == 0
+    assert (tmp_path / "keep.npz").is_file()
+    _refused(cli, tmp_path, "calibrate", "--from-rsir", tmp_path / "maps.npz", "--out", tmp_path / "keep",
+             names=("keep.npz", "--out", "exists"))
+    _refused(cli, tmp_path, "calibrate", "--from-rsir", tmp_path / "maps.npz", "--out", tmp_path / "r.txt",
+             names=("r.txt", "--out", ".npz"))
+    _refused(cli, tmp_path, "calibrate", "--dark", tmp_path / "maps.npz", "--flat", tmp_path / "maps.npz",
+             "--out", tmp_path / "q6.txt", names=("q6.txt", "--out", ".npz"))
