@@ -147,7 +147,7 @@ def main(argv=None) -> int:
     old_term = None
     if threading.current_thread() is threading.main_thread():
         old_term = signal.signal(signal.SIGTERM, _on_sigterm)
-    made = _missing_folders(getattr(args, "out", None))
+    made = _missing_folders(getattr(args, "out", None) or getattr(args, "output", None))
     ok = False
     try:
         rc = int(args.func(args) or 0)

@@ -59,3 +59,19 @@ def test_calibrate_out_without_suffix_is_the_npz_and_is_not_overwritten(cli, tmp
              names=("r.txt", "--out", ".npz"))
     _refused(cli, tmp_path, "calibrate", "--dark", tmp_path / "maps.npz", "--flat", tmp_path / "maps.npz",
              "--out", tmp_path / "q6.txt", names=("q6.txt", "--out", ".npz"))
+
+
+def _container(path, T=8, H=8, W=8):
+    import sensor
+    sensor.write_spikes(path, np.zeros((T, H, W), bool), interval_s=50e-6, model="ideal", profile_id="t", seed=0,
+                        source="test")
+
+
+def test_convert_refuses_empty_recording_and_folder_output(cli, tmp_path):
+    _container(tmp_path / "spk0.npz", T=0)
+    _refused(cli, tmp_path, "convert", tmp_path / "spk0.npz", tmp_path / "newdir" / "x" / "t0.dat",
+             names=("spk0.npz", "0 intervals"))
+    _container(tmp_path / "c1.npz")
+    (tmp_path / "adir.npz").mkdir()
+    _refused(cli, tmp_path, "convert", tmp_path / "c1.npz", tmp_path / "adir.npz", "--overwrite",
+             names=("adir.npz", "folder"))

@@ -62,14 +62,15 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
     kind = {".dat": "dat", ".npz": "container", ".h5": "h5", ".hdf5": "h5"}.get(dst.suffix.lower())
     if kind is None:
         raise InputError("OUTPUT must end in .dat, .npz or .h5/.hdf5", path=dst)
-    if src.exists() and dst.exists() and src.resolve() == dst.resolve():
-        raise InputError("OUTPUT is the INPUT file; choose another name", path=dst)
-    if dst.exists() and not overwrite:
-        raise InputError("exists; pass --overwrite to replace it", path=dst)
+    from render2spike.commands._common import check_output
+    check_output(dst, inputs=[src], overwrite=overwrite, flag="OUTPUT")
     if interval_s is not None and not (np.isfinite(interval_s) and interval_s > 0):
         raise InputError(f"must be a finite number of seconds above 0; got {interval_s}", field="--interval-s")
     spikes, meta = read_spikes_with_meta(src, layout=layout, height=height, width=width)
     T, H, W = spikes.shape
+    if T == 0:
+        raise InputError(f"holds 0 intervals ({H} x {W} frames): nothing to convert", path=src,
+                         field="n_intervals")
     interval = float(interval_s if interval_s is not None else meta.get("interval_s", INTERVAL_S))
     record = {"converted_from": str(src.resolve()), "input_layout": meta["layout"]}
     if kind == "dat":
