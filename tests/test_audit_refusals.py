@@ -75,3 +75,10 @@ def test_convert_refuses_empty_recording_and_folder_output(cli, tmp_path):
     (tmp_path / "adir.npz").mkdir()
     _refused(cli, tmp_path, "convert", tmp_path / "c1.npz", tmp_path / "adir.npz", "--overwrite",
              names=("adir.npz", "folder"))
+
+
+@pytest.mark.parametrize("drop", [24, 30])
+def test_reconstruct_refuses_dropping_the_whole_width(cli, tmp_path, drop):
+    (tmp_path / "d.dat").write_bytes(bytes(16 * 24 // 8 * 5))
+    _refused(cli, tmp_path, "reconstruct", tmp_path / "d.dat", "--out", tmp_path / "rc" / "dc", "--height", 16,
+             "--width", 24, "--drop-columns", drop, names=("d.dat", "--drop-columns", "24"))
