@@ -82,3 +82,20 @@ def test_reconstruct_refuses_dropping_the_whole_width(cli, tmp_path, drop):
     (tmp_path / "d.dat").write_bytes(bytes(16 * 24 // 8 * 5))
     _refused(cli, tmp_path, "reconstruct", tmp_path / "d.dat", "--out", tmp_path / "rc" / "dc", "--height", 16,
              "--width", 24, "--drop-columns", drop, names=("d.dat", "--drop-columns", "24"))
+
+
+@pytest.mark.parametrize("spec, words", [("tfp-dt-denoised:inf", "finite"), ("tfp-dt-denoised:nan", "finite"),
+                                         ("tfp-dt-denoised:-1", "above 0"), ("tfp-dt-denoised:1e300", "at most"),
+                                         ("tfp:0", "1 or more"), ("tfp:-3", "1 or more")])
+def test_method_arguments_checked_when_parsed(spec, words):
+    from recon.evaluate import parse_methods
+    from sensor.errors import InputError
+    with pytest.raises(InputError, match="--methods") as e:
+        parse_methods(spec)
+    assert words in str(e.value) and "\n" not in str(e.value)
+    assert parse_methods("tfp:4,tfp-dt-denoised:1.5")[1].arg == "1.5"
+
+
+def test_evaluate_refusal_leaves_no_output_folder(cli, tmp_path):
+    _refused(cli, tmp_path, "evaluate", "--data", "real:" + str(tmp_path / "uhsr.npz"), "--methods",
+             "tfp-dt-denoised:inf", "--out", tmp_path / "ev" / "s", names=("--methods",))
