@@ -99,3 +99,26 @@ def test_method_arguments_checked_when_parsed(spec, words):
 def test_evaluate_refusal_leaves_no_output_folder(cli, tmp_path):
     _refused(cli, tmp_path, "evaluate", "--data", "real:" + str(tmp_path / "uhsr.npz"), "--methods",
              "tfp-dt-denoised:inf", "--out", tmp_path / "ev" / "s", names=("--methods",))
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["simulate", "rate.npz", "--out", "sim/l.npz", "--seed", "-1"], "--seed"),
+    (["run", "translating_object", "--out", "sc/s", "--seed", "-1"], "--seed"),
+    (["run", "translating_object", "--out", "sc/s", "--render-seed", "-2"], "--render-seed"),
+    (["render", "translating_object", "--out", "sc/s", "--render-seed", "-2"], "--render-seed"),
+    (["evaluate", "--data", "real:x.npz", "--out", "ev", "--seed", "-1"], "--seed"),
+    (["realism", "x.npz", "--seed", "-1"], "--seed"),
+    (["train", "--data", "x", "--out", "tr", "--seed", "-5"], "--seed"),
+    (["study", "motion", "translating_object", "--param", "speed_px_per_ms=1,2", "--out", "st", "--seeds", "0,-1"],
+     "--seeds"),
+    (["study", "motion", "translating_object", "--param", "speed_px_per_ms=1,2", "--out", "st", "--seeds", "1,1"],
+     "--seeds"),
+])
+def test_negative_or_repeated_seeds_refused_at_parsing(cli, tmp_path, monkeypatch, argv, flag):
+    monkeypatch.chdir(tmp_path)
+    np.savez(tmp_path / "rate.npz", rate_e=np.ones((4, 8, 8), np.float32))
+    before = _tree(tmp_path)
+    r = cli(*argv)
+    assert r.returncode == 2, r.stderr
+    assert flag in r.stderr and "seed" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert _tree(tmp_path) == before

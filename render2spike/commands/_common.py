@@ -97,3 +97,25 @@ def check_numbers(args, *, at_least: dict | None = None, positive: tuple = ()) -
         v = getattr(args, name, None)
         if v is not None and not (math.isfinite(v) and v > 0):
             raise InputError(f"must be a finite number above 0; got {v}", field="--" + name.replace("_", "-"))
+
+
+def seed(text) -> int:
+    """argparse type of a seed option (--seed, --render-seed): a whole number >= 0, refused while the
+    arguments are parsed, before anything is read, rendered or written."""
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected a seed (a whole number >= 0), got '{text}'") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a seed (a whole number >= 0), got {value}")
+    return value
+
+
+def seed_list(text) -> list[int]:
+    """argparse type of a comma-separated list of seeds (--seeds): each a whole number >= 0, no repeats."""
+    values = [seed(x.strip()) for x in str(text).split(",") if x.strip()]
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected comma-separated seeds (whole numbers >= 0), got '{text}'")
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"expected distinct seeds, got '{text}' (a repeated seed repeats a run)")
+    return values

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 import argparse
 from pathlib import Path
 
@@ -70,7 +72,7 @@ def register(sub) -> None:
     p.add_argument("--height", type=int, help="frame height of a headerless .dat RECORDING")
     p.add_argument("--width", type=int, help="frame width of a headerless .dat RECORDING")
     p.add_argument("--crop", metavar="H,W", help="use the centred H x W window of RECORDING (faster; default: all)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every simulation (default: 0)")
+    p.add_argument("--seed", type=_seed_type, default=0, help="seed of every simulation (default: 0)")
     p.add_argument("--max-intervals", type=int, default=2000, metavar="N",
                    help="use the first N intervals of RECORDING (memory and time grow with N x H x W; default 2000)")
     p.add_argument("--segments", type=int, default=4, help="segments of the stationarity count test (default 4)")

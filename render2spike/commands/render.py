@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 import argparse
 
 HELP = "render a scene file to irradiance frames (OpenEXR, physical units)"
@@ -57,7 +59,7 @@ def add_scene_options(p) -> None:
     p.add_argument("--profile", metavar="NAME|PATH", help="sensor profile (sets resolution and pixel pitch)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any scene key, dotted path; list items by index or name (repeatable)")
-    p.add_argument("--render-seed", type=int, default=None, metavar="N",
+    p.add_argument("--render-seed", type=_seed_type, default=None, metavar="N",
                    help="render base seed: per-frame Monte Carlo seeds derive from it (default: the scene's "
                         "render.seed, 0 if unset)")
     from render2spike.render.backend import FALLBACK_VARIANT, GPU_VARIANT, PREFERRED_VARIANT

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 from pathlib import Path
 
 EXAMPLES = """presets (--size):
@@ -92,7 +94,7 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is best on a busy "
                    "2-core machine with --workers 1)")
     p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu or cuda")
-    p.add_argument("--seed", type=int, default=0, help="spike seed of the training data; also seeds batch order "
+    p.add_argument("--seed", type=_seed_type, default=0, help="spike seed of the training data; also seeds batch order "
                    "and weight init")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
