@@ -122,3 +122,9 @@ def test_negative_or_repeated_seeds_refused_at_parsing(cli, tmp_path, monkeypatc
     assert r.returncode == 2, r.stderr
     assert flag in r.stderr and "seed" in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("flag, value", [("--attn-window", 1000), ("--width", 100000)])
+def test_train_refuses_network_sizes_that_cannot_be_allocated(cli, tmp_path, flag, value):
+    _refused(cli, tmp_path, "train", "--data", "davis:dv:crop=32x32:res=48x64:lux=5-50:split=all", "--out",
+             tmp_path / "tr" / "aw", flag, value, names=(flag, "at most"))

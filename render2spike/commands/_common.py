@@ -82,10 +82,10 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: %(default)s)" if text else "(default: %(default)s)"
 
 
-def check_numbers(args, *, at_least: dict | None = None, positive: tuple = ()) -> None:
+def check_numbers(args, *, at_least: dict | None = None, positive: tuple = (), at_most: dict | None = None) -> None:
     """Refuse numeric options out of range before anything is read or written (one line naming the option).
 
-    ``at_least``: {attribute: minimum} for integer options; ``positive``: float options that must be finite and
+    ``at_least``: {attribute: minimum} for integer options; ``at_most``: {attribute: (maximum, why)}; ``positive``: float options that must be finite and
     above 0. Options left at None (not given, no default) are not checked.
     """
     import math
@@ -93,6 +93,10 @@ def check_numbers(args, *, at_least: dict | None = None, positive: tuple = ()) -
         v = getattr(args, name, None)
         if v is not None and v < lo:
             raise InputError(f"must be an integer >= {lo}; got {v}", field="--" + name.replace("_", "-"))
+    for name, (hi, why) in (at_most or {}).items():
+        v = getattr(args, name, None)
+        if v is not None and v > hi:
+            raise InputError(f"must be at most {hi} ({why}); got {v}", field="--" + name.replace("_", "-"))
     for name in positive:
         v = getattr(args, name, None)
         if v is not None and not (math.isfinite(v) and v > 0):

@@ -100,6 +100,10 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+#: largest --attn-window [pixels]: a 64 x 64 window's attention (4096 tokens) already holds 16 M weights per head
+MAX_ATTN_WINDOW = 64
+#: largest --width [channels]
+MAX_WIDTH = 1024
 SIZE_FLAGS = ("width", "res_blocks", "attn_depth", "heads", "attn_window")
 
 
@@ -135,7 +139,10 @@ def run(args) -> int:
     from render2spike.commands._common import check_numbers
     check_numbers(args, at_least=dict(steps=1, batch_size=1, checkpoint_every=1, workers=0, threads=1, width=1,
                                       res_blocks=0, attn_depth=0, heads=1, attn_window=1),
-                  positive=("lr", "max_minutes"))
+                  positive=("lr", "max_minutes"),
+                  at_most=dict(attn_window=(MAX_ATTN_WINDOW, "pixels of the half-resolution bands; the attention "
+                                                             "of one window grows as its fourth power"),
+                               width=(MAX_WIDTH, "channels; memory grows as its square")))
     if args.overwrite and args.resume:
         raise InputError("--overwrite starts a new run and --resume continues one: give one of them",
                          field="--overwrite")
