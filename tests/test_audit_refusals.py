@@ -128,3 +128,14 @@ def test_negative_or_repeated_seeds_refused_at_parsing(cli, tmp_path, monkeypatc
 def test_train_refuses_network_sizes_that_cannot_be_allocated(cli, tmp_path, flag, value):
     _refused(cli, tmp_path, "train", "--data", "davis:dv:crop=32x32:res=48x64:lux=5-50:split=all", "--out",
              tmp_path / "tr" / "aw", flag, value, names=(flag, "at most"))
+
+
+def test_outputs_below_a_file_are_refused_naming_the_option(cli, tmp_path):
+    (tmp_path / "d.dat").write_bytes(bytes(16 * 24 // 8 * 5))
+    (tmp_path / "victim.npz").write_bytes(b"keep")
+    err = _refused(cli, tmp_path, "reconstruct", tmp_path / "d.dat", "--out", tmp_path / "victim.npz" / "sub",
+                   "--height", 16, "--width", 24, names=("victim.npz", "--out", "not a folder"))
+    assert "NotADirectoryError" not in err
+    np.savez(tmp_path / "rate.npz", rate_e=np.ones((4, 8, 8), np.float32))
+    _refused(cli, tmp_path, "simulate", tmp_path / "rate.npz", "--out", tmp_path / "victim.npz" / "e.npz",
+             names=("victim.npz", "--out"))

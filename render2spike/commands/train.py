@@ -136,7 +136,8 @@ def run(args) -> int:
     from recon.train import TrainConfig, train
     from sensor.errors import InputError
 
-    from render2spike.commands._common import check_numbers
+    from render2spike.commands._common import check_numbers, check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file or a file above it is refused; runs: below
     check_numbers(args, at_least=dict(steps=1, batch_size=1, checkpoint_every=1, workers=0, threads=1, width=1,
                                       res_blocks=0, attn_depth=0, heads=1, attn_window=1),
                   positive=("lr", "max_minutes"),
