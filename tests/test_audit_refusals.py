@@ -139,3 +139,41 @@ def test_outputs_below_a_file_are_refused_naming_the_option(cli, tmp_path):
     np.savez(tmp_path / "rate.npz", rate_e=np.ones((4, 8, 8), np.float32))
     _refused(cli, tmp_path, "simulate", tmp_path / "rate.npz", "--out", tmp_path / "victim.npz" / "e.npz",
              names=("victim.npz", "--out"))
+
+
+def _with_meta(src, dst, **changes):
+    import json
+    with np.load(src) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays["meta_json"]).decode())
+    meta.update(changes)
+    arrays["meta_json"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(dst, **arrays)
+
+
+@pytest.mark.parametrize("bad", [-1, 0, float("nan"), "fast", True])
+@pytest.mark.parametrize("command", [["info"], ["convert", "{}", "out.h5"], ["reconstruct", "{}", "--out", "rc"]])
+def test_bad_interval_in_spike_file_metadata_refused(cli, tmp_path, monkeypatch, bad, command):
+    monkeypatch.chdir(tmp_path)
+    _container(tmp_path / "ok.npz")
+    _with_meta(tmp_path / "ok.npz", tmp_path / "bad.npz", interval_s=bad)
+    argv = [a.format(tmp_path / "bad.npz") for a in command]
+    if command == ["info"]:
+        argv.append(str(tmp_path / "bad.npz"))
+    _refused(cli, tmp_path, *argv, names=("bad.npz", "interval_s"))
+
+
+def test_not_a_zip_named_npz_says_so(cli, tmp_path):
+    (tmp_path / "garbage.npz").write_bytes(b"this is not an archive at all")
+    err = _refused(cli, tmp_path, "info", tmp_path / "garbage.npz", names=("garbage.npz", "not a zip"))
+    assert "pickle" not in err
+
+
+def test_container_with_bad_meta_json_names_the_field(cli, tmp_path):
+    _container(tmp_path / "ok.npz")
+    with np.load(tmp_path / "ok.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["meta_json"] = np.frombuffer(b"{not json", np.uint8)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    err = _refused(cli, tmp_path, "info", tmp_path / "bad.npz", names=("bad.npz", "meta_json"))
+    assert "not a readable" not in err

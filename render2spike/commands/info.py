@@ -54,14 +54,22 @@ def describe(path, height=250, width=400, raw=False) -> dict:
         return {"kind": "SpikeCV .dat spike stream", "intervals": n, "height": height, "width": s.shape[2],
                 "mean_spike_rate_per_interval (first 20000)": float(s.mean()) if s.size else 0.0}
     if p.suffix == ".npz":
+        from sensor.io.container import check_zip_start
+        check_zip_start(p, InputError)
         try:
             with np.load(p, allow_pickle=False) as z:
                 files = z.files
                 shapes = {k: list(z[k].shape) for k in files}
-                meta = json.loads(bytes(z["meta_json"]).decode()) if "meta_json" in z else {}
+                raw_meta = bytes(z["meta_json"]) if "meta_json" in z else None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(f"not a readable .npz archive (truncated or corrupt? {type(exc).__name__}: {exc})",
                              path=p) from exc
+        try:
+            meta = json.loads(raw_meta.decode()) if raw_meta is not None else {}
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"is not UTF-8 JSON ({exc})", path=p, field="meta_json") from exc
+        if not isinstance(meta, dict):
+            raise InputError(f"is JSON but not an object (got {type(meta).__name__})", path=p, field="meta_json")
         fmt = meta.get("format")
         if fmt == "render2spike-sensor-profile":
             return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}

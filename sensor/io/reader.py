@@ -79,6 +79,8 @@ class RateSource:
         elif not self.path.exists():
             raise InputError("does not exist", path=self.path)
         elif self.path.suffix == ".npz":
+            from sensor.io.container import check_zip_start
+            check_zip_start(self.path, InputError)
             try:
                 with np.load(self.path, allow_pickle=False) as z:
                     if "rate_e" not in z:

@@ -183,6 +183,8 @@ def _read_h5(path):
     meta.setdefault("height", s.shape[1])
     meta.setdefault("width", s.shape[2])
     meta["n_intervals"] = s.shape[0]
+    from sensor.io.container import check_meta_numbers
+    check_meta_numbers(meta, path)
     return s, meta
 
 
