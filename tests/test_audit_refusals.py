@@ -177,3 +177,16 @@ def test_container_with_bad_meta_json_names_the_field(cli, tmp_path):
     np.savez(tmp_path / "bad.npz", **arrays)
     err = _refused(cli, tmp_path, "info", tmp_path / "bad.npz", names=("bad.npz", "meta_json"))
     assert "not a readable" not in err
+
+
+def test_garbage_checkpoint_is_named_without_pointing_to_an_unsafe_load(tmp_path):
+    pytest.importorskip("torch")
+    from recon.nets.checkpoint import load_checkpoint
+    from sensor.errors import InputError
+    (tmp_path / "garbage.npz").write_bytes(b"\x00\x01 not a checkpoint" * 10)
+    np.savez(tmp_path / "arrays.npz", a=np.zeros(3))  # a zip archive, but not torch's
+    for name in ("garbage.npz", "arrays.npz"):
+        with pytest.raises(InputError) as e:
+            load_checkpoint(tmp_path / name)
+        msg = str(e.value)
+        assert name in msg and "weights_only" not in msg and "Re-running" not in msg and "\n" not in msg, msg
