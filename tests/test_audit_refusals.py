@@ -190,3 +190,15 @@ def test_garbage_checkpoint_is_named_without_pointing_to_an_unsafe_load(tmp_path
             load_checkpoint(tmp_path / name)
         msg = str(e.value)
         assert name in msg and "weights_only" not in msg and "Re-running" not in msg and "\n" not in msg, msg
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--spp", "0"], ["--spp", ">= 1", "got 0"]),
+    (["--keyframe-rate", "-5"], ["--keyframe-rate", "above 0"]),
+    (["--set", "render.spp=0"], ["render.spp", "'auto' or an integer >= 1", "got 0"]),
+    (["--set", "camera.profile.window=[-1,0,16,24]"], ["camera.profile.window.0", "minimum of 0"]),
+])
+def test_scene_option_messages_say_what_is_expected(cli, tmp_path, argv, words):
+    pytest.importorskip("jsonschema")
+    err = _refused(cli, tmp_path, "render", "translating_object", "--out", tmp_path / "r", *argv, names=words)
+    assert "allowed forms" not in err and "max_rate_hz" not in err

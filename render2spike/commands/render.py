@@ -92,6 +92,15 @@ def variant_of(args) -> str | None:
 
 
 def scene_sets(args) -> list[str]:
+    """The scene overrides the options give (``--set`` plus --spp and --keyframe-rate, checked here so that
+    their errors name the option, not the scene key they set)."""
+    import math
+
+    from sensor.errors import InputError
+    if args.spp is not None and args.spp < 1:
+        raise InputError(f"must be an integer >= 1 (samples per pixel per keyframe); got {args.spp}", field="--spp")
+    if args.keyframe_rate is not None and not (math.isfinite(args.keyframe_rate) and args.keyframe_rate > 0):
+        raise InputError(f"must be a finite rate in Hz above 0; got {args.keyframe_rate}", field="--keyframe-rate")
     sets = list(args.set or [])
     if args.spp is not None:
         sets.append(f"render.spp={int(args.spp)}")
