@@ -202,3 +202,9 @@ def test_scene_option_messages_say_what_is_expected(cli, tmp_path, argv, words):
     pytest.importorskip("jsonschema")
     err = _refused(cli, tmp_path, "render", "translating_object", "--out", tmp_path / "r", *argv, names=words)
     assert "allowed forms" not in err and "max_rate_hz" not in err
+
+
+def test_study_motion_refuses_a_window_longer_than_the_clip_before_rendering(cli, tmp_path):
+    pytest.importorskip("jsonschema")
+    _refused(cli, tmp_path, "study", "motion", "translating_object", "--param", "speed_px_per_ms=1,2", "--out",
+             tmp_path / "st", "--window", 100000, "--duration", 0.001, "--quiet", names=("--window", "100000"))
