@@ -208,3 +208,11 @@ def test_study_motion_refuses_a_window_longer_than_the_clip_before_rendering(cli
     pytest.importorskip("jsonschema")
     _refused(cli, tmp_path, "study", "motion", "translating_object", "--param", "speed_px_per_ms=1,2", "--out",
              tmp_path / "st", "--window", 100000, "--duration", 0.001, "--quiet", names=("--window", "100000"))
+
+
+def test_vidar_raw_layout_with_another_width_is_refused(cli, tmp_path):
+    (tmp_path / "d.dat").write_bytes(bytes(16 * 8 // 8 * 600))
+    _refused(cli, tmp_path, "convert", tmp_path / "d.dat", tmp_path / "r4.npz", "--layout", "vidar-raw",
+             "--height", 16, "--width", 8, names=("d.dat", "--width", "416"))
+    assert cli("convert", tmp_path / "d.dat", tmp_path / "r4.npz", "--layout", "dat", "--height", 16,
+               "--width", 8).returncode == 0

@@ -62,6 +62,8 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
     kind = {".dat": "dat", ".npz": "container", ".h5": "h5", ".hdf5": "h5"}.get(dst.suffix.lower())
     if kind is None:
         raise InputError("OUTPUT must end in .dat, .npz or .h5/.hdf5", path=dst)
+    if src.exists() and dst.exists() and src.resolve() == dst.resolve():
+        raise InputError("OUTPUT is the INPUT file; choose another name", path=dst)
     from render2spike.commands._common import check_output
     check_output(dst, inputs=[src], overwrite=overwrite, flag="OUTPUT")
     if interval_s is not None and not (np.isfinite(interval_s) and interval_s > 0):
