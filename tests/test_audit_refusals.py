@@ -67,10 +67,11 @@ def _container(path, T=8, H=8, W=8):
                         source="test")
 
 
-def test_convert_refuses_empty_recording_and_folder_output(cli, tmp_path):
+def test_convert_writes_an_empty_recording_to_dat_and_refuses_a_folder_output(cli, tmp_path):
     _container(tmp_path / "spk0.npz", T=0)
-    _refused(cli, tmp_path, "convert", tmp_path / "spk0.npz", tmp_path / "newdir" / "x" / "t0.dat",
-             names=("spk0.npz", "0 intervals"))
+    r = cli("convert", tmp_path / "spk0.npz", tmp_path / "newdir" / "x" / "t0.dat")
+    assert r.returncode == 0 and "0 intervals" in r.stdout, r.stderr
+    assert (tmp_path / "newdir" / "x" / "t0.dat").stat().st_size == 0
     _container(tmp_path / "c1.npz")
     (tmp_path / "adir.npz").mkdir()
     _refused(cli, tmp_path, "convert", tmp_path / "c1.npz", tmp_path / "adir.npz", "--overwrite",

@@ -70,9 +70,6 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
         raise InputError(f"must be a finite number of seconds above 0; got {interval_s}", field="--interval-s")
     spikes, meta = read_spikes_with_meta(src, layout=layout, height=height, width=width)
     T, H, W = spikes.shape
-    if T == 0:
-        raise InputError(f"holds 0 intervals ({H} x {W} frames): nothing to convert", path=src,
-                         field="n_intervals")
     interval = float(interval_s if interval_s is not None else meta.get("interval_s", INTERVAL_S))
     record = {"converted_from": str(src.resolve()), "input_layout": meta["layout"]}
     if kind == "dat":

@@ -22,7 +22,7 @@ def write_dat(path, spikes) -> Path:
     path = Path(path)
     # os.write (not ndarray.tofile, whose short write on a full disk carries no errno): a full disk is a
     # DiskFullError naming ``path``, and nothing is left behind
-    write_bytes_atomic(path, np.ascontiguousarray(frames))
+    write_bytes_atomic(path, np.ascontiguousarray(frames).reshape(-1))  # flat: 0 frames are 0 bytes
     return path
 
 
