@@ -217,3 +217,15 @@ def test_vidar_raw_layout_with_another_width_is_refused(cli, tmp_path):
              "--height", 16, "--width", 8, names=("d.dat", "--width", "416"))
     assert cli("convert", tmp_path / "d.dat", tmp_path / "r4.npz", "--layout", "dat", "--height", 16,
                "--width", 8).returncode == 0
+
+
+def test_repeated_spec_keys_and_param_values_refused():
+    from recon.spec import parse_data_spec
+    from render2spike.studies.motion import parse_param
+    from sensor.errors import InputError
+    with pytest.raises(InputError, match="twice"):
+        parse_data_spec("real:uhsr.npz:clip=32:clip=64")
+    assert parse_data_spec("real:uhsr.npz:clip=32") is not None
+    with pytest.raises(InputError, match="--param"):
+        parse_param("speed_px_per_ms=1,1")
+    assert parse_param("speed_px_per_ms=1,2") == ("speed_px_per_ms", [1.0, 2.0])

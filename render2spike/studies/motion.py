@@ -156,6 +156,8 @@ def parse_param(text: str) -> tuple[str, list[float]]:
         raise InputError(f"values of '{key}' must be numbers, got '{vals}'", field="--param") from None
     if not values:
         raise InputError(f"no values for '{key}'", field="--param")
+    if len(set(values)) != len(values):
+        raise InputError(f"values of '{key}' repeat ({vals}); give each value once", field="--param")
     return key.strip(), values
 
 
