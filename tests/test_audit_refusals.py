@@ -229,3 +229,11 @@ def test_repeated_spec_keys_and_param_values_refused():
     with pytest.raises(InputError, match="--param"):
         parse_param("speed_px_per_ms=1,1")
     assert parse_param("speed_px_per_ms=1,2") == ("speed_px_per_ms", [1.0, 2.0])
+
+
+@pytest.mark.parametrize("argv, flag", [(["--checkpoint", "nonexist.pt"], "--checkpoint"), (["--sigma", "3"], "--sigma"),
+                                        (["--windows", "4"], "--windows")])
+def test_reconstruct_refuses_options_of_other_methods(cli, tmp_path, argv, flag):
+    (tmp_path / "d.dat").write_bytes(bytes(16 * 24 // 8 * 5))
+    _refused(cli, tmp_path, "reconstruct", tmp_path / "d.dat", "--out", tmp_path / "rc", "--height", 16, "--width",
+             24, "--method", "tfp", *argv, names=(flag, "applies only"))
