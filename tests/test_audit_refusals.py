@@ -237,3 +237,11 @@ def test_reconstruct_refuses_options_of_other_methods(cli, tmp_path, argv, flag)
     (tmp_path / "d.dat").write_bytes(bytes(16 * 24 // 8 * 5))
     _refused(cli, tmp_path, "reconstruct", tmp_path / "d.dat", "--out", tmp_path / "rc", "--height", 16, "--width",
              24, "--method", "tfp", *argv, names=(flag, "applies only"))
+
+
+def test_convert_refuses_options_that_do_not_apply(cli, tmp_path):
+    _container(tmp_path / "x.npz")
+    _refused(cli, tmp_path, "convert", tmp_path / "x.npz", tmp_path / "x.dat", "--h5-uint8",
+             names=("--h5-uint8", "x.dat"))
+    _refused(cli, tmp_path, "convert", tmp_path / "x.npz", tmp_path / "y.h5", "--height", 7,
+             names=("--height", "x.npz"))

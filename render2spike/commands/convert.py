@@ -97,6 +97,14 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
 
 
 def run(args) -> int:
+    from sensor.errors import InputError
+    if args.h5_uint8 and Path(args.output).suffix.lower() not in (".h5", ".hdf5"):
+        raise InputError("applies only to an .h5/.hdf5 OUTPUT", path=args.output, field="--h5-uint8")
+    if Path(args.input).suffix.lower() != ".dat" and args.layout not in ("dat", "vidar-raw"):
+        for name in ("height", "width"):
+            if getattr(args, name) is not None:
+                raise InputError("applies only to a headerless .dat INPUT (this file records its frame size)",
+                                 path=args.input, field="--" + name)
     info = convert(args.input, args.output, layout=args.layout, height=args.height, width=args.width,
                    interval_s=args.interval_s, h5_encoding="uint8" if args.h5_uint8 else "packbits-little",
                    overwrite=args.overwrite)
