@@ -245,3 +245,17 @@ def test_convert_refuses_options_that_do_not_apply(cli, tmp_path):
              names=("--h5-uint8", "x.dat"))
     _refused(cli, tmp_path, "convert", tmp_path / "x.npz", tmp_path / "y.h5", "--height", 7,
              names=("--height", "x.npz"))
+
+
+def test_ideal_model_with_a_reset_is_refused():
+    from sensor.errors import InputError
+    from sensor.models.spec import parse_model_spec
+    for spec in ("ideal:crossing", "ideal:interval"):
+        with pytest.raises(InputError, match="no reset"):
+            parse_model_spec(spec)
+    assert parse_model_spec("ideal").reset is None and parse_model_spec("elssim:crossing").reset == "crossing"
+
+
+def test_run_refuses_a_preview_window_below_one(cli, tmp_path):
+    _refused(cli, tmp_path, "run", "translating_object", "--out", tmp_path / "r", "--preview-window", 0,
+             names=("--preview-window", ">= 1"))

@@ -54,7 +54,9 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from render2spike.commands.render import scene_sets, variant_of
+    from render2spike.commands._common import check_numbers
     from render2spike.pipeline import run_pipeline
+    check_numbers(args, at_least=dict(preview_window=1))
     s = run_pipeline(args.scene, args.out, sets=scene_sets(args), lux=args.lux, duration_s=args.duration,
                      profile=args.profile, model=args.model, seed=args.seed, overwrite=args.overwrite,
                      progress=not args.quiet, preview_window=args.preview_window, dat=args.dat,
