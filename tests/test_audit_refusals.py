@@ -259,3 +259,14 @@ def test_ideal_model_with_a_reset_is_refused():
 def test_run_refuses_a_preview_window_below_one(cli, tmp_path):
     _refused(cli, tmp_path, "run", "translating_object", "--out", tmp_path / "r", "--preview-window", 0,
              names=("--preview-window", ">= 1"))
+
+
+def test_info_raw_with_another_width_and_realism_dark_mode_without_fit_refused(cli, tmp_path):
+    (tmp_path / "d.dat").write_bytes(bytes(1 * 416 // 8 * 3))
+    _refused(cli, tmp_path, "info", tmp_path / "d.dat", "--height", 1, "--width", 8, "--raw", names=("--width",))
+    assert cli("info", tmp_path / "d.dat", "--height", 1, "--width", 416, "--raw").returncode == 0
+    _container(tmp_path / "rec.npz", T=64)
+    _refused(cli, tmp_path, "realism", tmp_path / "rec.npz", "--out", tmp_path / "re", "--fit-dark-mode", "events",
+             names=("--fit-dark-mode", "--fit"))
+    _refused(cli, tmp_path, "realism", tmp_path / "rec.npz", "--out", tmp_path / "rec.npz" / "x",
+             names=("rec.npz", "--out"))

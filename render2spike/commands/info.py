@@ -20,7 +20,7 @@ def register(sub) -> None:
                               "  render2spike info rec.dat --height 250 --width 416 --raw")
     p.add_argument("file", metavar="FILE", help="spike .npz/.dat, frames folder, profile .npz or bundled profile name")
     p.add_argument("--height", type=int, default=250, help=".dat frame height (default 250)")
-    p.add_argument("--width", type=int, default=400, help=".dat frame width (default 400)")
+    p.add_argument("--width", type=int, default=None, help=".dat frame width (default 400; with --raw 416)")
     p.add_argument("--raw", action="store_true", help=".dat is a raw 416-wide capture (drop 16 columns)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
@@ -97,7 +97,11 @@ def describe(path, height=250, width=400, raw=False) -> dict:
 
 
 def run(args) -> int:
-    info = describe(args.file, args.height, args.width, args.raw)
+    from sensor.errors import InputError
+    if args.raw and args.width not in (None, 416):
+        raise InputError(f"--raw reads 416-wide captures (400 and 16 dropped); got --width {args.width}: drop "
+                         "--raw to read another width", field="--width")
+    info = describe(args.file, args.height, 400 if args.width is None else args.width, args.raw)
     if args.json:
         print(json.dumps(info, indent=2, default=str))
     else:
