@@ -270,3 +270,11 @@ def test_info_raw_with_another_width_and_realism_dark_mode_without_fit_refused(c
              names=("--fit-dark-mode", "--fit"))
     _refused(cli, tmp_path, "realism", tmp_path / "rec.npz", "--out", tmp_path / "rec.npz" / "x",
              names=("rec.npz", "--out"))
+
+
+def test_synth_refuses_fewer_sequences_than_it_writes(tmp_path, capsys):
+    from recon.synth import main
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "dv"), "--sequences", "3", "--frames", "2", "--size", "8x8"])
+    assert e.value.code == 2 and "--sequences" in capsys.readouterr().err
+    assert not (tmp_path / "dv").exists()
