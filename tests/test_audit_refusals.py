@@ -278,3 +278,12 @@ def test_synth_refuses_fewer_sequences_than_it_writes(tmp_path, capsys):
         main([str(tmp_path / "dv"), "--sequences", "3", "--frames", "2", "--size", "8x8"])
     assert e.value.code == 2 and "--sequences" in capsys.readouterr().err
     assert not (tmp_path / "dv").exists()
+
+
+@pytest.mark.parametrize("command", [["render", "translating_object"], ["run", "translating_object"],
+                                     ["dataset", "spec.yaml"]])
+def test_render_run_dataset_refuse_an_output_below_a_file(cli, tmp_path, monkeypatch, command):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "victim.npz").write_bytes(b"keep")
+    err = _refused(cli, tmp_path, *command, "--out", tmp_path / "victim.npz" / "sub", names=("victim.npz", "--out"))
+    assert "NotADirectoryError" not in err

@@ -122,6 +122,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from render2spike.render.job import render_scene
+    from render2spike.commands._common import check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file, or a file above it; resuming and --overwrite: below
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
     if args.seed is not None:

@@ -54,6 +54,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from render2spike.commands.render import scene_sets, variant_of
+    from render2spike.commands._common import check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file, or a file above it; resuming and --overwrite: below
     from render2spike.commands._common import check_numbers
     from render2spike.pipeline import run_pipeline
     check_numbers(args, at_least=dict(preview_window=1))
