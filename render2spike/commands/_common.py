@@ -44,7 +44,7 @@ def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = Fals
     for up in out.absolute().parents:  # the nearest existing folder above the output must be a folder
         if up.exists():
             if not up.is_dir():
-                raise InputError(f"{up} on the way to the output is a file, not a folder; choose another {flag}",
+                raise InputError(f"cannot make it: {up} on the way to it is a file, not a folder; choose another {flag}",
                                  path=out, field=flag)
             break
     for src in inputs:
