@@ -287,3 +287,10 @@ def test_render_run_dataset_refuse_an_output_below_a_file(cli, tmp_path, monkeyp
     (tmp_path / "victim.npz").write_bytes(b"keep")
     err = _refused(cli, tmp_path, *command, "--out", tmp_path / "victim.npz" / "sub", names=("victim.npz", "--out"))
     assert "NotADirectoryError" not in err
+
+
+def test_simulate_refuses_frames_whose_rate_is_absurd(cli, tmp_path):
+    import sensor
+    sensor.write_frames(tmp_path / "frames", np.full((3, 8, 16), 1e30, np.float32), [0.0, 0.005, 0.01])
+    _refused(cli, tmp_path, "simulate", tmp_path / "frames", "--out", tmp_path / "s" / "e.npz", "--quiet",
+             "--model", "isi", names=("frames", "Phi", "1e+09"))
