@@ -194,7 +194,7 @@ class RateSource:
                 out[:ov] = head
             self.frames.read_scaled_many(i, j, scale, out[ov:])
             if count_bad(out[ov:], MAX_RATE_E):  # Phi is finite and >= 0 here; the rate may still be absurd
-                check_rates(out[ov:], path=self.path, field="Phi", offset=i)
+                check_rates(out[ov:], path=self.path, field="Phi (in photoelectrons per interval)", offset=i)
             return out
         try:
             if self._member is not None:
