@@ -2,7 +2,7 @@
 in-memory arrays, and the plan of which rows to read when (:func:`plan_reads`).
 
 A source hands out chunks ``(rate_e (k, H, W) float32 [e-/interval], t_s (k,) or None, overlap)``,
-checked (finite, >= 0; errors name the file and row), that the consumer may keep
+checked (finite, >= 0 and <= :data:`sensor.units.MAX_RATE_E`; errors name the file and row), that the consumer may keep
 (``SpikeSimulator.iter_feed_packed(owned=True)``). Memory is a few chunks, flat in duration.
 :func:`sensor.io.stream.open_stream` feeds them through a simulator.
 """
