@@ -9,7 +9,8 @@ Errors derived from :class:`sensor.errors.Render2SpikeError` are printed as one
 line (``render2spike: error: ...``) with exit code 2; a full disk, a permission refused and a
 read-only file system say which file; set ``RENDER2SPIKE_DEBUG=1`` to see the traceback instead.
 SIGTERM is handled like Ctrl-C (SIGINT): the command stops, temp files are
-removed, locks released, exit code 130 (143 for SIGTERM).
+removed, locks released, exit code 130 (143 for SIGTERM); the process then exits at once, without
+waiting for a compiled kernel still running a block on a worker thread.
 
 The top-level help lists every registered command with its one-line help,
 generated from the modules, so it never goes stale.
@@ -149,6 +150,7 @@ def main(argv=None) -> int:
         old_term = signal.signal(signal.SIGTERM, _on_sigterm)
     made = _missing_folders(getattr(args, "out", None) or getattr(args, "output", None))
     ok = False
+    stop_code = None  # the exit code of a command stopped by SIGTERM or Ctrl-C
     try:
         rc = int(args.func(args) or 0)
         ok = rc == 0
@@ -177,7 +179,8 @@ def main(argv=None) -> int:
         term = isinstance(exc, _Terminated)
         print(f"render2spike: {'terminated' if term else 'interrupted'}; unfinished files were removed",
               file=sys.stderr)
-        return 143 if term else 130
+        stop_code = 143 if term else 130
+        return stop_code
     finally:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
@@ -185,6 +188,13 @@ def main(argv=None) -> int:
         remove_live_temps()  # temp files of writes a signal cut short before their own cleanup ran
         if not ok:
             _remove_made_folders(made)  # empty folders a refused or failed command made on the way to --out
+        if from_command_line and stop_code is not None:
+            # stopped, and everything is cleaned up: exit now. A normal exit would first wait for the worker
+            # threads, and a compiled kernel (which holds no Python frame to interrupt) may still be running
+            # a block of spikes there
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(stop_code)
         if from_command_line:
             # the process ends next: keep the interpreter's exit from a last cyclic-GC pass over every
             # object the command's imports made (~0.3 s after numba); files are closed by now

@@ -294,3 +294,35 @@ def test_simulate_refuses_frames_whose_rate_is_absurd(cli, tmp_path):
     sensor.write_frames(tmp_path / "frames", np.full((3, 8, 16), 1e30, np.float32), [0.0, 0.005, 0.01])
     _refused(cli, tmp_path, "simulate", tmp_path / "frames", "--out", tmp_path / "s" / "e.npz", "--quiet",
              "--model", "isi", names=("frames", "Phi", "1e+09"))
+
+
+def test_sigterm_ends_a_simulation_stuck_in_a_kernel_at_once(tmp_path):
+    """At the rate bound the isi kernel runs for minutes per block; SIGTERM must still end the process at once
+    (exit code 143, nothing left behind), not after the block that a worker thread is computing."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+    np.savez(tmp_path / "r.npz", rate_e=np.full((2000, 32, 32), 1e9, np.float32))
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root), RENDER2SPIKE_THREADS="2")
+    p = subprocess.Popen([sys.executable, "-m", "render2spike", "simulate", str(tmp_path / "r.npz"), "--out",
+                          str(tmp_path / "s" / "e.npz"), "--quiet", "--model", "isi"], env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.time()
+        while not list((tmp_path / "s").glob(".e.part-*")) and time.time() - t0 < 120 and p.poll() is None:
+            time.sleep(0.05)
+        time.sleep(1.0)  # the kernel is running its first block
+        assert p.poll() is None, p.communicate()
+        p.send_signal(signal.SIGTERM)
+        t1 = time.time()
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 143 and "terminated" in err, err
+        assert time.time() - t1 < 10
+        assert not (tmp_path / "s").exists()
+    finally:
+        if p.poll() is None:
+            p.kill()
