@@ -57,6 +57,9 @@ WINDOW_GRID = (16, 32, 64, 128, 320)
 #: window [intervals] of a table that names none (format version 1), and the span of the light key
 DEFAULT_WINDOW = 320
 COUNT_WINDOW = 320
+#: largest Gaussian width [pixels] accepted for denoising: wider than any frame the project reads, where the
+#: filter is a plain mean; larger widths only cost memory
+MAX_SIGMA_PX = 1000.0
 
 
 def gaussian_denoise(img, sigma: float) -> np.ndarray:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,6 +73,8 @@ def parse_methods(text: str) -> list[Method]:
                     n = int(arg)
                 except ValueError:
                     raise InputError(f"tfp:N needs an integer window, got '{arg}'", field="--methods") from None
+                if n < 1:
+                    raise InputError(f"tfp:N needs a window of 1 or more intervals, got {n}", field="--methods")
                 out.append(Method("tfp", str(n), f"TFP (M={n})"))
             else:
                 out.append(Method("tfp", None, "TFP (M=320)"))
@@ -86,6 +89,10 @@ def parse_methods(text: str) -> list[Method]:
                 except ValueError:
                     raise InputError(f"tfp-dt-denoised:S needs a width in pixels, got '{arg}'",
                                      field="--methods") from None
+                from .baselines import MAX_SIGMA_PX
+                if not (math.isfinite(sig) and 0 < sig <= MAX_SIGMA_PX):
+                    raise InputError(f"tfp-dt-denoised:S needs a finite width in pixels above 0 and at most "
+                                     f"{MAX_SIGMA_PX:g}, got {arg}", field="--methods")
                 out.append(Method("tfp-dt-denoised", str(sig), f"TFP-DT + Gaussian (sigma={sig:g})"))
             else:
                 out.append(Method("tfp-dt-denoised", None, "TFP-DT + Gaussian (tuned)"))

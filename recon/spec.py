@@ -147,6 +147,8 @@ def parse_data_spec(text: str) -> DataSpec:
             if key not in valid:
                 raise InputError(f"unknown option '{key}' for {kind} data; valid: {', '.join(sorted(valid))}",
                                  field="--data")
+            if key in opts:
+                raise InputError(f"option '{key}' is given twice; give it once", field="--data")
             opts[key] = _convert(key, value, valid[key])
         else:
             path_tokens.append(tok)

@@ -99,7 +99,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
     split = load_split(DAVIS_SPLIT_FILE)
-    n_train = max(a.sequences - len(split["test"]), 0)
+    n_test = len(split["test"])
+    if a.sequences < n_test:
+        ap.error(f"argument --sequences: expected at least {n_test} (the test sequences are always written), "
+                 f"got {a.sequences}")
+    if a.frames < 1:
+        ap.error(f"argument --frames: expected a whole number >= 1, got {a.frames}")
+    if a.seed < 0:
+        ap.error(f"argument --seed: expected a seed (a whole number >= 0), got {a.seed}")
+    n_train = a.sequences - n_test
     names = split["train"][:n_train] + split["test"]
     make_davis_like(a.out, names, a.frames, parse_hw(a.size, "--size"), a.seed)
     print(f"wrote {len(names)} sequences x {a.frames} frames to {a.out}")

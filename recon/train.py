@@ -197,6 +197,11 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
             raise InputError("missing required field", path=last, field="step")
         step = int(ckpt["step"])
         stored = json.loads((out_dir / "config.json").read_text()) if (out_dir / "config.json").is_file() else {}
+        for key, flag in (("data", "--data"), ("noise_model", "--noise-model")):
+            if key in stored and key in (run_info or {}) and stored[key] != run_info[key]:
+                raise InputError(f"--resume continues the run trained on {flag} {stored[key]!r}, but this command "
+                                 f"gives {run_info[key]!r}; give the stored one, or start a new run in another "
+                                 "--out", path=out_dir / "config.json", field=flag)
         if stored.get("train"):
             old = TrainConfig.from_dict(stored["train"])
             cfg = TrainConfig(**{**asdict(old), "steps": cfg.steps, "max_minutes": cfg.max_minutes,

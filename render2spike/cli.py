@@ -9,7 +9,8 @@ Errors derived from :class:`sensor.errors.Render2SpikeError` are printed as one
 line (``render2spike: error: ...``) with exit code 2; a full disk, a permission refused and a
 read-only file system say which file; set ``RENDER2SPIKE_DEBUG=1`` to see the traceback instead.
 SIGTERM is handled like Ctrl-C (SIGINT): the command stops, temp files are
-removed, locks released, exit code 130 (143 for SIGTERM).
+removed, locks released, exit code 130 (143 for SIGTERM); the process then exits at once, without
+waiting for a compiled kernel still running a block on a worker thread.
 
 The top-level help lists every registered command with its one-line help,
 generated from the modules, so it never goes stale.
@@ -101,6 +102,36 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
     return f"{filename}:{lineno}: {category.__name__}: {message}\n"
 
 
+def _missing_folders(out) -> list:
+    """The folders on the way to ``out`` (``out`` included) that do not exist yet, deepest first."""
+    if not out or not isinstance(out, (str, os.PathLike)):
+        return []
+    from pathlib import Path
+    try:
+        p = Path(out).absolute()
+    except (OSError, ValueError):
+        return []
+    missing = []
+    for q in [p, *p.parents]:
+        try:
+            if q.exists() or q.is_symlink():
+                break
+        except OSError:
+            break
+        missing.append(q)
+    return missing
+
+
+def _remove_made_folders(missing) -> None:
+    """After a failed command: remove the folders of ``missing`` it made that are still empty (deepest first),
+    so that a refusal leaves nothing behind."""
+    for q in missing:
+        try:
+            os.rmdir(q)
+        except OSError:  # absent, not empty, or not ours to remove
+            pass
+
+
 def main(argv=None) -> int:
     from_command_line = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -117,8 +148,13 @@ def main(argv=None) -> int:
     old_term = None
     if threading.current_thread() is threading.main_thread():
         old_term = signal.signal(signal.SIGTERM, _on_sigterm)
+    made = _missing_folders(getattr(args, "out", None) or getattr(args, "output", None))
+    ok = False
+    stop_code = None  # the exit code of a command stopped by SIGTERM or Ctrl-C
     try:
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
+        ok = rc == 0
+        return rc
     except Render2SpikeError as exc:
         if os.environ.get("RENDER2SPIKE_DEBUG"):
             raise
@@ -143,12 +179,22 @@ def main(argv=None) -> int:
         term = isinstance(exc, _Terminated)
         print(f"render2spike: {'terminated' if term else 'interrupted'}; unfinished files were removed",
               file=sys.stderr)
-        return 143 if term else 130
+        stop_code = 143 if term else 130
+        return stop_code
     finally:
         if old_term is not None:
             signal.signal(signal.SIGTERM, old_term)
         from sensor.io.fileio import remove_live_temps
         remove_live_temps()  # temp files of writes a signal cut short before their own cleanup ran
+        if not ok:
+            _remove_made_folders(made)  # empty folders a refused or failed command made on the way to --out
+        if from_command_line and stop_code is not None:
+            # stopped, and everything is cleaned up: exit now. A normal exit would first wait for the worker
+            # threads, and a compiled kernel (which holds no Python frame to interrupt) may still be running
+            # a block of spikes there
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(stop_code)
         if from_command_line:
             # the process ends next: keep the interpreter's exit from a last cyclic-GC pass over every
             # object the command's imports made (~0.3 s after numba); files are closed by now

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from sensor.errors import InputError
-from sensor.units import INTERVAL_S
+from sensor.units import INTERVAL_S, MAX_RATE_E
 
 _N_INTERVALS_EPS = 1e-6
 
@@ -52,30 +52,38 @@ def check_times(t_s, path=None, offset: int = 0) -> np.ndarray:
     return t
 
 
-def bad_values(arr):
-    """None if ``arr`` is all finite and >= 0, else (how many values are not, index of the first, its value)."""
+def bad_values(arr, top: float | None = None):
+    """None if ``arr`` is all finite and >= 0 (and <= ``top`` when given), else (how many values are not,
+    index of the first, its value)."""
     arr = np.asarray(arr)
     if arr.size == 0:
         return None
+    top = np.inf if top is None else top
     lo, hi = arr.min(), arr.max()  # NaN propagates through min/max: one pass when all is well
-    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
+    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0 and hi <= top:
         return None
-    bad = ~np.isfinite(arr) | (arr < 0)
+    bad = ~np.isfinite(arr) | (arr < 0) | (arr > top)
     idx = tuple(int(x) for x in np.argwhere(bad)[0])
     return int(bad.sum()), idx, float(arr[idx])
 
 
 def check_rates(rate_e, path=None, field: str = "rate_e", offset: int = 0) -> None:
-    """Raise InputError naming the first (keyframe, row, col) where ``rate_e`` is non-finite or negative.
+    """Raise InputError naming the first (keyframe, row, col) where ``rate_e`` is non-finite, negative or
+    above :data:`sensor.units.MAX_RATE_E` [e-/interval].
 
     ``offset`` is added to the keyframe index (for chunks of a longer array).
     """
-    found = bad_values(rate_e)
+    rate_e = np.asarray(rate_e)
+    if rate_e.dtype.kind not in "biuf":
+        raise InputError(f"has dtype {rate_e.dtype}; expected real numbers (float or integer)", path=path,
+                         field=field)
+    found = bad_values(rate_e, MAX_RATE_E)
     if found:
         n, idx, v = found
         idx = (idx[0] + offset,) + tuple(idx[1:])
-        raise InputError(f"{n} value(s) are non-finite or negative, first at index {list(idx)}: {v!r} (expected "
-                         "finite photoelectrons per interval >= 0)", path=path, field=field)
+        raise InputError(f"{n} value(s) are non-finite, negative or above {MAX_RATE_E:g}, first at index "
+                         f"{list(idx)}: {v!r} (expected finite photoelectrons per interval in [0, {MAX_RATE_E:g}])",
+                         path=path, field=field)
 
 
 def n_intervals_spanned(t_first_s: float, t_last_s: float, interval_s: float = INTERVAL_S) -> int:
@@ -357,6 +365,9 @@ class RateSchedule:
         a block can lie in one chunk (:func:`block_keyframe_rows`).
         """
         given = rate_e
+        if check and np.asarray(given).dtype.kind not in "biuf":
+            raise InputError(f"has dtype {np.asarray(given).dtype}; expected real numbers (float or integer)",
+                             field="rate_e")
         rate_e = np.asarray(rate_e, dtype=np.float32)
         # keep a private copy (the caller may reuse its buffer), unless the conversion already made one
         shared = isinstance(given, np.ndarray) and np.may_share_memory(rate_e, given)

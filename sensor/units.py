@@ -33,6 +33,12 @@ LUMINOUS_EFFICACY_LM_W = 683.002  #: K_m, peak luminous efficacy at 555 nm [lm/W
 CLOCK_HZ = 10.0e6  #: sensor clock CLK [Hz]
 TIME_UNIT_S = 2.0 / CLOCK_HZ  #: dt = 2 / CLK [s] (0.2 us)
 INTERVAL_S = 50.0e-6  #: T_r, one spike read-out interval [s] (20 kHz)
+#: Largest photoelectron rate accepted as input [e- per interval]: 2e13 e-/s, about 60,000 times the rate at
+#: which a vidar-default pixel (threshold 16,000 e-) fires in every interval, and over 1,000 times a white
+#: target in full daylight (1e5 lux at f/2, ~7e5 e-/interval with docs/sensor.md's photometry). The read-out
+#: saturates at one spike per interval long before; larger rates only make the event-driven ``isi`` model walk
+#: ever more firings per interval (about rate / threshold of them), so they are refused.
+MAX_RATE_E = 1.0e9
 
 
 def time_units_per_interval(interval_s: float = INTERVAL_S, clock_hz: float = CLOCK_HZ) -> float:

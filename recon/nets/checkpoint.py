@@ -52,6 +52,14 @@ def load_checkpoint(path, device="cpu"):
         # weights_only: plain containers and tensors only -- loading a checkpoint never runs code from it
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
+        with open(path, "rb") as fh:
+            zipped = fh.read(2) == b"PK"
+        if not zipped:  # torch.save writes a zip archive
+            raise InputError("not a PyTorch checkpoint (torch.save writes a zip archive; this file is not one)",
+                             path=path) from exc
+        if "weights only load failed" in str(exc).lower():
+            raise InputError("holds objects other than tensors and plain containers: not a render2spike checkpoint "
+                             "(such files are not loaded, as loading them could run code)", path=path) from exc
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
         raise InputError(f"not a readable PyTorch checkpoint (truncated, corrupt or not a checkpoint: {first})",
                          path=path) from exc

@@ -41,6 +41,12 @@ def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = Fals
     """
     from sensor.io.lock import sweep_parts
     out = Path(out)
+    for up in out.absolute().parents:  # the nearest existing folder above the output must be a folder
+        if up.exists():
+            if not up.is_dir():
+                raise InputError(f"cannot make it: {up} on the way to it is a file, not a folder; choose another {flag}",
+                                 path=out, field=flag)
+            break
     for src in inputs:
         if src is None:
             continue
@@ -82,10 +88,10 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: %(default)s)" if text else "(default: %(default)s)"
 
 
-def check_numbers(args, *, at_least: dict | None = None, positive: tuple = ()) -> None:
+def check_numbers(args, *, at_least: dict | None = None, positive: tuple = (), at_most: dict | None = None) -> None:
     """Refuse numeric options out of range before anything is read or written (one line naming the option).
 
-    ``at_least``: {attribute: minimum} for integer options; ``positive``: float options that must be finite and
+    ``at_least``: {attribute: minimum} for integer options; ``at_most``: {attribute: (maximum, why)}; ``positive``: float options that must be finite and
     above 0. Options left at None (not given, no default) are not checked.
     """
     import math
@@ -93,7 +99,33 @@ def check_numbers(args, *, at_least: dict | None = None, positive: tuple = ()) -
         v = getattr(args, name, None)
         if v is not None and v < lo:
             raise InputError(f"must be an integer >= {lo}; got {v}", field="--" + name.replace("_", "-"))
+    for name, (hi, why) in (at_most or {}).items():
+        v = getattr(args, name, None)
+        if v is not None and v > hi:
+            raise InputError(f"must be at most {hi} ({why}); got {v}", field="--" + name.replace("_", "-"))
     for name in positive:
         v = getattr(args, name, None)
         if v is not None and not (math.isfinite(v) and v > 0):
             raise InputError(f"must be a finite number above 0; got {v}", field="--" + name.replace("_", "-"))
+
+
+def seed(text) -> int:
+    """argparse type of a seed option (--seed, --render-seed): a whole number >= 0, refused while the
+    arguments are parsed, before anything is read, rendered or written."""
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected a seed (a whole number >= 0), got '{text}'") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a seed (a whole number >= 0), got {value}")
+    return value
+
+
+def seed_list(text) -> list[int]:
+    """argparse type of a comma-separated list of seeds (--seeds): each a whole number >= 0, no repeats."""
+    values = [seed(x.strip()) for x in str(text).split(",") if x.strip()]
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected comma-separated seeds (whole numbers >= 0), got '{text}'")
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"expected distinct seeds, got '{text}' (a repeated seed repeats a run)")
+    return values

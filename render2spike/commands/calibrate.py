@@ -90,6 +90,19 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _profile_out(out) -> Path:
+    """The file --out names: a profile is an .npz; a name without a suffix gets ".npz" (as
+    :meth:`sensor.SensorProfile.save` adds it), any other suffix is refused."""
+    from sensor.errors import InputError
+    out = Path(out)
+    if out.suffix == "":
+        return out.with_name(out.name + ".npz")
+    if out.suffix != ".npz":
+        raise InputError(f"a profile is written as an .npz file; got the suffix '{out.suffix}' (give a name "
+                         "ending in .npz)", path=out, field="--out")
+    return out
+
+
 def run(args) -> int:
     from render2spike.commands._common import check_output
     from sensor import SensorProfile
@@ -106,7 +119,8 @@ def run(args) -> int:
     from sensor.io.dat import check_frame_dims
     check_frame_dims(args.height, args.width)
     base_path = args.base if Path(args.base).exists() else None
-    out = check_output(args.out, inputs=[*args.dark, *args.flat, base_path], overwrite=args.overwrite)
+    out = check_output(_profile_out(args.out), inputs=[*args.dark, *args.flat, base_path],
+                       overwrite=args.overwrite)
     for suffix in (".png", ".json"):  # the report beside the profile is an output too
         check_output(out.with_name(out.stem + "_report" + suffix), overwrite=args.overwrite)
     base = SensorProfile.load(args.base)
@@ -119,7 +133,7 @@ def run(args) -> int:
                              estimate_threshold=not args.keep_threshold, dark_mode=args.dark_mode,
                              progress=print,
                              progress_bar=True)
-    out = prof.save(args.out)
+    out = prof.save(out)
     files = write_report(report, prof, out.with_name(out.stem + "_report"))
     n = report.numbers
     print(f"wrote {out}: mean dark rate {n['mean_dark_rate_hz']:.1f} Hz, {n['hot_pixels']} hot pixels, "
@@ -155,13 +169,13 @@ def run_rsir(args) -> int:
         raise InputError(f"--from-rsir imports maps; {', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} "
                          "only to calibration from recordings", field=given[0])
     base_path = args.base if Path(args.base).exists() else None
-    check_output(args.out, inputs=[args.from_rsir, base_path], overwrite=args.overwrite)
+    out = check_output(_profile_out(args.out), inputs=[args.from_rsir, base_path], overwrite=args.overwrite)
     base = SensorProfile.load(args.base)
     maps = load_rsir_maps(args.from_rsir)
     imp = import_rsir(maps, base, plus_one=args.plus_one or "dead-time",
                       kelvin=DEFAULT_KELVIN if args.kelvin is None else args.kelvin, source=str(args.from_rsir))
     prof = rsir_profile(imp, base, name=args.name or f"rsir-{Path(args.from_rsir).stem}")
-    out = prof.save(args.out)
+    out = prof.save(out)
     n = imp.summary()
     print(f"wrote {out}: {n['resolution']}, threshold {n['threshold_e']:.0f} e- (s = "
           f"{n['sensitivity_e_per_lux']:.2f} e-/(interval lux) from '{base.name}'), PRNU sd/mean "

@@ -64,8 +64,8 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
         raise InputError("OUTPUT must end in .dat, .npz or .h5/.hdf5", path=dst)
     if src.exists() and dst.exists() and src.resolve() == dst.resolve():
         raise InputError("OUTPUT is the INPUT file; choose another name", path=dst)
-    if dst.exists() and not overwrite:
-        raise InputError("exists; pass --overwrite to replace it", path=dst)
+    from render2spike.commands._common import check_output
+    check_output(dst, inputs=[src], overwrite=overwrite, flag="OUTPUT")
     if interval_s is not None and not (np.isfinite(interval_s) and interval_s > 0):
         raise InputError(f"must be a finite number of seconds above 0; got {interval_s}", field="--interval-s")
     spikes, meta = read_spikes_with_meta(src, layout=layout, height=height, width=width)
@@ -97,6 +97,14 @@ def convert(input_path, output_path, *, layout=None, height=None, width=None, in
 
 
 def run(args) -> int:
+    from sensor.errors import InputError
+    if args.h5_uint8 and Path(args.output).suffix.lower() not in (".h5", ".hdf5"):
+        raise InputError("applies only to an .h5/.hdf5 OUTPUT", path=args.output, field="--h5-uint8")
+    if Path(args.input).suffix.lower() != ".dat" and args.layout not in ("dat", "vidar-raw"):
+        for name in ("height", "width"):
+            if getattr(args, name) is not None:
+                raise InputError("applies only to a headerless .dat INPUT (this file records its frame size)",
+                                 path=args.input, field="--" + name)
     info = convert(args.input, args.output, layout=args.layout, height=args.height, width=args.width,
                    interval_s=args.interval_s, h5_encoding="uint8" if args.h5_uint8 else "packbits-little",
                    overwrite=args.overwrite)

@@ -100,6 +100,8 @@ def run(args) -> int:
     from sensor.errors import InputError
     if not args.out.strip():
         raise InputError("expected a folder name, got ''", field="--out")
+    from render2spike.commands._common import check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file, or a file above it; resuming and --overwrite: below
     resources = parse_resources(args.resources)
     check_run_options(args.workers, args.retries, resources, args.scheduler)
     export = None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 
 
 EXAMPLES = """\
@@ -34,7 +36,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (table.md, table.csv, grid.png, ...)")
     p.add_argument("--examples", type=int, default=4, help="rows of the example grid")
     p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu or cuda")
-    p.add_argument("--seed", type=int, default=0, help="spike seed: seeds the simulated test spikes")
+    p.add_argument("--seed", type=_seed_type, default=0, help="spike seed: seeds the simulated test spikes")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p, "write into an existing, non-empty output folder")
     p.set_defaults(func=run)

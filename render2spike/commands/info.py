@@ -20,7 +20,7 @@ def register(sub) -> None:
                               "  render2spike info rec.dat --height 250 --width 416 --raw")
     p.add_argument("file", metavar="FILE", help="spike .npz/.dat, frames folder, profile .npz or bundled profile name")
     p.add_argument("--height", type=int, default=250, help=".dat frame height (default 250)")
-    p.add_argument("--width", type=int, default=400, help=".dat frame width (default 400)")
+    p.add_argument("--width", type=int, default=None, help=".dat frame width (default 400; with --raw 416)")
     p.add_argument("--raw", action="store_true", help=".dat is a raw 416-wide capture (drop 16 columns)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=run)
@@ -54,14 +54,22 @@ def describe(path, height=250, width=400, raw=False) -> dict:
         return {"kind": "SpikeCV .dat spike stream", "intervals": n, "height": height, "width": s.shape[2],
                 "mean_spike_rate_per_interval (first 20000)": float(s.mean()) if s.size else 0.0}
     if p.suffix == ".npz":
+        from sensor.io.container import check_zip_start
+        check_zip_start(p, InputError)
         try:
             with np.load(p, allow_pickle=False) as z:
                 files = z.files
                 shapes = {k: list(z[k].shape) for k in files}
-                meta = json.loads(bytes(z["meta_json"]).decode()) if "meta_json" in z else {}
+                raw_meta = bytes(z["meta_json"]) if "meta_json" in z else None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(f"not a readable .npz archive (truncated or corrupt? {type(exc).__name__}: {exc})",
                              path=p) from exc
+        try:
+            meta = json.loads(raw_meta.decode()) if raw_meta is not None else {}
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"is not UTF-8 JSON ({exc})", path=p, field="meta_json") from exc
+        if not isinstance(meta, dict):
+            raise InputError(f"is JSON but not an object (got {type(meta).__name__})", path=p, field="meta_json")
         fmt = meta.get("format")
         if fmt == "render2spike-sensor-profile":
             return {"kind": "sensor profile", **SensorProfile.load(p).summary(), "provenance": meta.get("provenance")}
@@ -89,7 +97,11 @@ def describe(path, height=250, width=400, raw=False) -> dict:
 
 
 def run(args) -> int:
-    info = describe(args.file, args.height, args.width, args.raw)
+    from sensor.errors import InputError
+    if args.raw and args.width not in (None, 416):
+        raise InputError(f"--raw reads 416-wide captures (400 and 16 dropped); got --width {args.width}: drop "
+                         "--raw to read another width", field="--width")
+    info = describe(args.file, args.height, 400 if args.width is None else args.width, args.raw)
     if args.json:
         print(json.dumps(info, indent=2, default=str))
     else:

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 import argparse
-from pathlib import Path
 
 HELP = "compare a real spike recording with each spike model (statistics per mean ISI, figure, distances)"
 DESCRIPTION = """\
@@ -70,7 +71,7 @@ def register(sub) -> None:
     p.add_argument("--height", type=int, help="frame height of a headerless .dat RECORDING")
     p.add_argument("--width", type=int, help="frame width of a headerless .dat RECORDING")
     p.add_argument("--crop", metavar="H,W", help="use the centred H x W window of RECORDING (faster; default: all)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every simulation (default: 0)")
+    p.add_argument("--seed", type=_seed_type, default=0, help="seed of every simulation (default: 0)")
     p.add_argument("--max-intervals", type=int, default=2000, metavar="N",
                    help="use the first N intervals of RECORDING (memory and time grow with N x H x W; default 2000)")
     p.add_argument("--segments", type=int, default=4, help="segments of the stationarity count test (default 4)")
@@ -104,9 +105,11 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a folder", path=out)
+    from render2spike.commands._common import check_output
+    out = check_output(args.out, inputs=[args.recording], overwrite=True,
+                       folder=True)  # a file, or a file above it; an existing report: below
+    if args.fit_dark_mode is not None and not args.fit:
+        raise InputError("applies only with --fit (the fitted profile's dark mode)", field="--fit-dark-mode")
     if (out / "realism.json").exists() and not args.overwrite:
         raise InputError("already holds a realism report; pass --overwrite to replace it", path=out)
     from render2spike.commands._common import check_numbers

@@ -62,6 +62,17 @@ def run(args) -> int:
     from render2spike.commands._common import check_numbers, check_output
     check_numbers(args, at_least=dict(window=1, windows=1, window_length=1, every=1, center=0, drop_columns=0),
                   positive=("sigma",))
+    only = {"checkpoint": "rsir", "windows": "rsir", "window_length": "rsir", "sigma": "tfp-dt-denoised"}
+    for name, method in only.items():
+        if getattr(args, name) is not None and args.method != method:
+            from sensor.errors import InputError
+            flag = "--" + name.replace("_", "-")
+            raise InputError(f"applies only to --method {method} (this is --method {args.method}); drop it or "
+                             "change the method", field=flag)
+    from recon.baselines import MAX_SIGMA_PX
+    if args.sigma is not None and args.sigma > MAX_SIGMA_PX:
+        from sensor.errors import InputError
+        raise InputError(f"must be at most {MAX_SIGMA_PX:g} pixels; got {args.sigma}", field="--sigma")
     check_output(args.out, inputs=[args.spikes, args.checkpoint], overwrite=args.overwrite, folder=True)
     written = reconstruct_file(args.spikes, method=args.method, checkpoint=args.checkpoint, out_dir=args.out,
                                window=args.window, center=args.center, every=args.every, profile=args.profile,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 import argparse
 
 HELP = "render a scene file to irradiance frames (OpenEXR, physical units)"
@@ -57,7 +59,7 @@ def add_scene_options(p) -> None:
     p.add_argument("--profile", metavar="NAME|PATH", help="sensor profile (sets resolution and pixel pitch)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any scene key, dotted path; list items by index or name (repeatable)")
-    p.add_argument("--render-seed", type=int, default=None, metavar="N",
+    p.add_argument("--render-seed", type=_seed_type, default=None, metavar="N",
                    help="render base seed: per-frame Monte Carlo seeds derive from it (default: the scene's "
                         "render.seed, 0 if unset)")
     from render2spike.render.backend import FALLBACK_VARIANT, GPU_VARIANT, PREFERRED_VARIANT
@@ -90,6 +92,15 @@ def variant_of(args) -> str | None:
 
 
 def scene_sets(args) -> list[str]:
+    """The scene overrides the options give (``--set`` plus --spp and --keyframe-rate, checked here so that
+    their errors name the option, not the scene key they set)."""
+    import math
+
+    from sensor.errors import InputError
+    if args.spp is not None and args.spp < 1:
+        raise InputError(f"must be an integer >= 1 (samples per pixel per keyframe); got {args.spp}", field="--spp")
+    if args.keyframe_rate is not None and not (math.isfinite(args.keyframe_rate) and args.keyframe_rate > 0):
+        raise InputError(f"must be a finite rate in Hz above 0; got {args.keyframe_rate}", field="--keyframe-rate")
     sets = list(args.set or [])
     if args.spp is not None:
         sets.append(f"render.spp={int(args.spp)}")
@@ -111,6 +122,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from render2spike.render.job import render_scene
+    from render2spike.commands._common import check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file, or a file above it; resuming and --overwrite: below
     from render2spike.render.scene import load_scene
     from sensor.errors import InputError
     if args.seed is not None:

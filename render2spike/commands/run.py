@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 HELP = "render a scene, simulate the spike camera, write a preview and a summary"
 DESCRIPTION = """\
 The whole pipeline in one command:
@@ -41,7 +43,7 @@ def register(sub) -> None:
     from render2spike.commands.render import add_scene_options
     p = sub.add_parser("run", help=HELP, description=DESCRIPTION, epilog=EXAMPLES, formatter_class=HelpFormatter)
     add_scene_options(p)
-    p.add_argument("--seed", type=int, default=0, metavar="N",
+    p.add_argument("--seed", type=_seed_type, default=0, metavar="N",
                    help="spike seed: seeds the spike simulation (default: 0); --render-seed seeds the render")
     p.add_argument("--model", default="elssim", choices=MODELS, help="spike noise model (default: elssim)")
     p.add_argument("--dat", action="store_true", help="also write OUT/spikes.dat (SpikeCV .dat layout)")
@@ -52,7 +54,11 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from render2spike.commands.render import scene_sets, variant_of
+    from render2spike.commands._common import check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file, or a file above it; resuming and --overwrite: below
+    from render2spike.commands._common import check_numbers
     from render2spike.pipeline import run_pipeline
+    check_numbers(args, at_least=dict(preview_window=1))
     s = run_pipeline(args.scene, args.out, sets=scene_sets(args), lux=args.lux, duration_s=args.duration,
                      profile=args.profile, model=args.model, seed=args.seed, overwrite=args.overwrite,
                      progress=not args.quiet, preview_window=args.preview_window, dat=args.dat,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 import argparse
 import contextlib
 import sys
@@ -50,7 +52,7 @@ def register(sub) -> None:
     p.add_argument("--model", default="elssim", choices=MODELS, help="noise model (default: elssim)")
     p.add_argument("--profile", default="vidar-default", metavar="NAME|PATH",
                    help="sensor profile: bundled name or .npz file (default: vidar-default)")
-    p.add_argument("--seed", type=int, default=0, help="spike seed: seeds every random draw of the simulation (default: 0)")
+    p.add_argument("--seed", type=_seed_type, default=0, help="spike seed: seeds every random draw of the simulation (default: 0)")
     p.add_argument("--reset", choices=RESETS, default=None,
                    help="pixel reset of elssim, overriding the profile's: 'crossing' (fires and resets the moment "
                         "the charge reaches the threshold; vidar-default) or 'interval' (Algorithm 2 as published)")

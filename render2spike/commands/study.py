@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+from render2spike.commands._common import seed_list as _seed_list
+
 import argparse
 from pathlib import Path
 
@@ -60,7 +63,7 @@ def _common(p, window=320):
                    help="reconstructions (recon's registry: tfp, tfp:N, tfi, tfp-dt, rsir:CKPT, ...; default "
                         "tfp,tfp-dt,tfp-dt-denoised: the strongest classic estimate is always in the table); the "
                         "noise-free window average is always added")
-    p.add_argument("--seeds", type=_ints, default=[0, 1, 2], metavar="S1,S2",
+    p.add_argument("--seeds", type=_seed_list, default=[0, 1, 2], metavar="S1,S2",
                    help="simulation seeds; error bars are the spread of the per-seed means (default 0,1,2)")
     p.add_argument("--window", type=int, default=window, help=f"reconstruction window [intervals] (default {window})")
     p.add_argument("--preroll", type=int, default=2000,
@@ -175,7 +178,7 @@ examples:
     p.add_argument("--crop", default=None, metavar="HxW", help="centre crop of the frames (smaller = faster)")
     p.add_argument("--test-fraction", type=float, default=0.25, help="fraction of the samples used for testing")
     p.add_argument("--profile", default="vidar-default", help="sensor profile (centre-windowed; default vidar-default)")
-    p.add_argument("--seed", type=int, default=0, help="seed of training order and test noise (default 0)")
+    p.add_argument("--seed", type=_seed_type, default=0, help="seed of training order and test noise (default 0)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--workers", type=int, default=0, help="dataset workers (0: this process; see `dataset`)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from render2spike.commands._common import seed as _seed_type
+
 from pathlib import Path
 
 EXAMPLES = """presets (--size):
@@ -92,12 +94,16 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; 1 is best on a busy "
                    "2-core machine with --workers 1)")
     p.add_argument("--device", default="auto", help="auto (CUDA if present, else CPU), cpu or cuda")
-    p.add_argument("--seed", type=int, default=0, help="spike seed of the training data; also seeds batch order "
+    p.add_argument("--seed", type=_seed_type, default=0, help="spike seed of the training data; also seeds batch order "
                    "and weight init")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
+#: largest --attn-window [pixels]: a 64 x 64 window's attention (4096 tokens) already holds 16 M weights per head
+MAX_ATTN_WINDOW = 64
+#: largest --width [channels]
+MAX_WIDTH = 1024
 SIZE_FLAGS = ("width", "res_blocks", "attn_depth", "heads", "attn_window")
 
 
@@ -130,10 +136,14 @@ def run(args) -> int:
     from recon.train import TrainConfig, train
     from sensor.errors import InputError
 
-    from render2spike.commands._common import check_numbers
+    from render2spike.commands._common import check_numbers, check_output
+    check_output(args.out, overwrite=True, folder=True)  # a file or a file above it is refused; runs: below
     check_numbers(args, at_least=dict(steps=1, batch_size=1, checkpoint_every=1, workers=0, threads=1, width=1,
                                       res_blocks=0, attn_depth=0, heads=1, attn_window=1),
-                  positive=("lr", "max_minutes"))
+                  positive=("lr", "max_minutes"),
+                  at_most=dict(attn_window=(MAX_ATTN_WINDOW, "pixels of the half-resolution bands; the attention "
+                                                             "of one window grows as its fourth power"),
+                               width=(MAX_WIDTH, "channels; memory grows as its square")))
     if args.overwrite and args.resume:
         raise InputError("--overwrite starts a new run and --resume continues one: give one of them",
                          field="--overwrite")

@@ -172,6 +172,35 @@ def _error_path(err) -> str:
     return ".".join(str(p) for p in err.absolute_path) or "(top level)"
 
 
+def _form(schema) -> str:
+    """A few words for what a (sub)schema accepts: "'auto'", "an integer >= 1", "a mapping with keys ..."."""
+    if not isinstance(schema, dict):
+        return "a value"
+    if "const" in schema:
+        return repr(schema["const"])
+    if "enum" in schema:
+        return "one of " + ", ".join(map(repr, schema["enum"]))
+    t = schema.get("type")
+    bounds = [f">= {schema['minimum']}" if "minimum" in schema else "",
+              f"> {schema['exclusiveMinimum']}" if "exclusiveMinimum" in schema else "",
+              f"<= {schema['maximum']}" if "maximum" in schema else "",
+              f"< {schema['exclusiveMaximum']}" if "exclusiveMaximum" in schema else ""]
+    bounds = " and ".join(b for b in bounds if b)
+    if t in ("integer", "number"):
+        return f"{'an integer' if t == 'integer' else 'a number'}{' ' + bounds if bounds else ''}"
+    if t == "string":
+        return "a string"
+    if t == "boolean":
+        return "true or false"
+    if t == "array":
+        n = schema.get("minItems")
+        return f"a list{f' of {n}' if n is not None and n == schema.get('maxItems') else ''} ({_form(schema.get('items'))} each)"
+    if t == "object":
+        req = schema.get("required")
+        return f"a mapping with {', '.join(req)}" if req else "a mapping"
+    return "a value of another form"
+
+
 def _describe(err) -> str:
     """A one-line message for a jsonschema error: what was found and what was expected."""
     v = err.validator
@@ -179,8 +208,13 @@ def _describe(err) -> str:
         allowed = sorted(err.schema.get("properties", {}))
         return f"{err.message}; allowed keys here: {', '.join(allowed)}"
     if v in ("oneOf", "anyOf") and err.context:
-        best = min(err.context, key=lambda e: len(list(e.absolute_path)))
-        return f"{err.message.split(' is not valid')[0]} matches none of the allowed forms (e.g. {best.message})"
+        depth = len(list(err.absolute_path))
+        deep = [e for e in err.context if len(list(e.absolute_path)) > depth]
+        if deep:  # the value has the shape of one form, and a part of it is wrong: say which part
+            inner = max(deep, key=lambda e: len(list(e.absolute_path)))
+            return f"{_describe(inner)} (at {_error_path(inner)})"
+        forms = [_form(s) for s in err.validator_value]
+        return f"must be {' or '.join(forms)}; got {err.instance!r}"
     if v == "enum":
         return f"{err.instance!r} is not one of {', '.join(map(repr, err.validator_value))}"
     if v == "required":

@@ -156,6 +156,8 @@ def parse_param(text: str) -> tuple[str, list[float]]:
         raise InputError(f"values of '{key}' must be numbers, got '{vals}'", field="--param") from None
     if not values:
         raise InputError(f"no values for '{key}'", field="--param")
+    if len(set(values)) != len(values):
+        raise InputError(f"values of '{key}' repeat ({vals}); give each value once", field="--param")
     return key.strip(), values
 
 
@@ -218,7 +220,9 @@ def run_motion_study(scene, param: str, values, out, *, methods="tfp,tfp-dt,tfp-
     for m in models:
         parse_model_spec(m)
     for v in values:  # every value's scene is checked before the first render (and before OUT is made)
-        load_scene(scene, list(sets) + [f"{param}={v!r}"], lux=lux, duration_s=duration_s)
+        scv = load_scene(scene, list(sets) + [f"{param}={v!r}"], lux=lux, duration_s=duration_s)
+        # the clip must hold a whole window: refused now, not after the render
+        window_centers(n_intervals_spanned(0.0, scv.duration_s, scv.profile.interval_s), window, n_centers)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows, strips, renders = [], [], []

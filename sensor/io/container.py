@@ -98,7 +98,33 @@ def _container_meta(z, path) -> dict:
         v = meta.get(key)
         if not isinstance(v, int) or v < 1:
             raise SpikeFileError(f"must be a positive integer; got {v!r}", path=path, field=key)
+    check_meta_numbers(meta, path)
     return meta
+
+
+def check_meta_numbers(meta: dict, path=None) -> None:
+    """Refuse a spike file's metadata whose ``interval_s`` [s] is given but not a finite number above 0, or whose
+    ``n_intervals`` is given but not an integer >= 0 (:class:`SpikeFileError` naming the file and the field)."""
+    import math
+    v = meta.get("interval_s")
+    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
+        raise SpikeFileError(f"must be a finite number of seconds above 0; got {v!r}", path=path, field="interval_s")
+    n = meta.get("n_intervals")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
+        raise SpikeFileError(f"must be an integer >= 0; got {n!r}", path=path, field="n_intervals")
+
+
+def check_zip_start(path, error=SpikeFileError) -> None:
+    """Refuse an ``.npz`` that does not begin as a zip archive, before ``np.load`` would take it for a pickle
+    (its message then speaks of ``allow_pickle``): ``error`` naming the file."""
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(2)
+    except OSError as exc:
+        raise error(f"cannot be read ({exc.strerror or exc})", path=path) from exc
+    if magic != b"PK":
+        raise error("is not an .npz archive (not a zip file: empty, damaged at the start, or another format)",
+                    path=path)
 
 
 class _npz:
@@ -110,6 +136,7 @@ class _npz:
     def __enter__(self):
         if not self.path.is_file():
             raise SpikeFileError("file does not exist", path=self.path)
+        check_zip_start(self.path)
         try:
             self.z = np.load(self.path, allow_pickle=False)
         except Exception as exc:  # BadZipFile, EOFError, OSError, ValueError, zlib.error ...

@@ -22,7 +22,7 @@ def write_dat(path, spikes) -> Path:
     path = Path(path)
     # os.write (not ndarray.tofile, whose short write on a full disk carries no errno): a full disk is a
     # DiskFullError naming ``path``, and nothing is left behind
-    write_bytes_atomic(path, np.ascontiguousarray(frames))
+    write_bytes_atomic(path, np.ascontiguousarray(frames).reshape(-1))  # flat: 0 frames are 0 bytes
     return path
 
 
@@ -73,6 +73,9 @@ def read_dat(path, height: int = 250, width: int = 400, *, drop_columns: int = 0
     start, count : int
         Read frames ``start .. start+count-1`` only (memory-mapped).
     """
+    if not 0 <= drop_columns < width:
+        raise SpikeFileError(f"must be 0 or more and fewer than the frame width {width}; got {drop_columns}",
+                             path=path, field="--drop-columns")
     n = dat_frame_count(path, height, width)
     frame_bytes = height * width // 8
     count = n - start if count is None else int(count)

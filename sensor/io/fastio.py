@@ -68,6 +68,14 @@ if HAVE_NUMBA:
             bad += 0 if (v >= 0 and v <= _FMAX) else 1
         return bad
 
+    @njit(nogil=True, cache=True)
+    def _count_bad_hi_1d(a, hi):  # pragma: no cover - compiled
+        bad = 0
+        for i in range(a.size):
+            v = a[i]
+            bad += 0 if (v >= 0 and v <= hi) else 1
+        return bad
+
 
 def exr_scale_checked(table, heads, src, first: int, stride: int, y0: int, line: int, scale: float, out) -> int:
     """:func:`scale_checked` of a channel ``src`` (float32 (H, W)) sliced out of an uncompressed scanline
@@ -173,17 +181,21 @@ def scale_checked(src, scale: float, out) -> int:
     return bad
 
 
-def count_bad(arr) -> int:
-    """How many values of ``arr`` are non-finite or negative (one pass over a contiguous float32 array)."""
+def count_bad(arr, hi: float | None = None) -> int:
+    """How many values of ``arr`` are non-finite or negative, or above ``hi`` when given (one pass over a
+    contiguous float32 array)."""
     arr = np.asarray(arr)
     if arr.size == 0:
         return 0
     if HAVE_NUMBA and arr.dtype == np.float32 and arr.flags.c_contiguous:
-        return int(_count_bad_1d(arr.reshape(-1)))
-    lo, hi = arr.min(), arr.max()  # NaN propagates through min/max: two passes when all is well
-    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:
+        if hi is None:
+            return int(_count_bad_1d(arr.reshape(-1)))
+        return int(_count_bad_hi_1d(arr.reshape(-1), float(hi)))
+    top = np.inf if hi is None else hi
+    lo, up = arr.min(), arr.max()  # NaN propagates through min/max: two passes when all is well
+    if np.isfinite(lo) and np.isfinite(up) and lo >= 0 and up <= top:
         return 0
-    return int((~np.isfinite(arr) | (arr < 0)).sum())
+    return int((~np.isfinite(arr) | (arr < 0) | (arr > top)).sum())
 
 
 def flip_rows_counted(bits, dst) -> int:

@@ -2,7 +2,7 @@
 in-memory arrays, and the plan of which rows to read when (:func:`plan_reads`).
 
 A source hands out chunks ``(rate_e (k, H, W) float32 [e-/interval], t_s (k,) or None, overlap)``,
-checked (finite, >= 0; errors name the file and row), that the consumer may keep
+checked (finite, >= 0 and <= :data:`sensor.units.MAX_RATE_E`; errors name the file and row), that the consumer may keep
 (``SpikeSimulator.iter_feed_packed(owned=True)``). Memory is a few chunks, flat in duration.
 :func:`sensor.io.stream.open_stream` feeds them through a simulator.
 """
@@ -20,10 +20,15 @@ import numpy as np
 from sensor.errors import InputError
 from sensor.io.buffers import RecyclingPool
 from sensor.io.npzrows import NpzMember, stored_member_map
+from sensor.units import MAX_RATE_E
 
 
-def _check_array(shape, t_s, path=None) -> None:
-    """Check a rate array's shape (K, H, W), non-empty, and its keyframe times ``t_s`` (K,) when given."""
+def _check_array(shape, t_s, path=None, dtype=None) -> None:
+    """Check a rate array's shape (K, H, W), non-empty, its dtype (real numbers) and its keyframe times
+    ``t_s`` (K,) when given."""
+    if dtype is not None and np.dtype(dtype).kind not in "biuf":
+        raise InputError(f"has dtype {np.dtype(dtype)}; expected real numbers (float or integer)", path=path,
+                         field="rate_e")
     if len(shape) != 3:
         raise InputError(f"rate_e must be (K, H, W); got shape {shape}", path=path, field="rate_e")
     if t_s is not None and t_s.shape != (shape[0],):
@@ -74,6 +79,8 @@ class RateSource:
         elif not self.path.exists():
             raise InputError("does not exist", path=self.path)
         elif self.path.suffix == ".npz":
+            from sensor.io.container import check_zip_start
+            check_zip_start(self.path, InputError)
             try:
                 with np.load(self.path, allow_pickle=False) as z:
                     if "rate_e" not in z:
@@ -83,11 +90,11 @@ class RateSource:
                 mapped = stored_member_map(self.path, "rate_e")
                 if mapped is None:  # deflated (or otherwise not mappable): decoded chunk by chunk
                     self._member = NpzMember(self.path, "rate_e")
-                    shape = self._member.shape
+                    shape, dtype = self._member.shape, self._member.dtype
                 else:
                     self.rate, (want, crc) = mapped
                     self._crc = {"want": want, "crc": crc, "rows": 0}
-                    shape = self.rate.shape
+                    shape, dtype = self.rate.shape, self.rate.dtype
             except InputError:
                 raise
             except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
@@ -98,14 +105,14 @@ class RateSource:
                 self.rate = np.load(self.path, allow_pickle=False, mmap_mode="r")
             except (OSError, ValueError, EOFError) as exc:
                 raise InputError(f"not a readable .npy ({exc})", path=self.path) from exc
-            shape = self.rate.shape
+            shape, dtype = self.rate.shape, self.rate.dtype
             self.t_s = None
             self.kind = "array"
         else:
             raise InputError("INPUT must be a frames folder, an .npz (rate_e[, t_s]) or an .npy rate array",
                              path=self.path)
         if self.kind == "array":
-            _check_array(shape, self.t_s, self.path)
+            _check_array(shape, self.t_s, self.path, dtype)
             self.shape = tuple(shape[1:])
             self.n = shape[0]
             self.per_interval = self.t_s is None
@@ -186,6 +193,8 @@ class RateSource:
             if ov:
                 out[:ov] = head
             self.frames.read_scaled_many(i, j, scale, out[ov:])
+            if count_bad(out[ov:], MAX_RATE_E):  # Phi is finite and >= 0 here; the rate may still be absurd
+                check_rates(out[ov:], path=self.path, field="Phi (in photoelectrons per interval)", offset=i)
             return out
         try:
             if self._member is not None:
@@ -204,7 +213,7 @@ class RateSource:
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise InputError(f"cannot read rows {i}..{j - 1} of rate_e (truncated or corrupt? {exc})",
                              path=self.path, field="rate_e") from exc
-        if count_bad(rate[ov:]):  # one pass; the slow search for the first bad value only on failure
+        if count_bad(rate[ov:], MAX_RATE_E):  # one pass; the slow search for the first bad value only on failure
             check_rates(rate[ov:], path=self.path, offset=i)  # names the absolute index
         return rate
 
@@ -315,6 +324,7 @@ class ArraySource:
     kind = "memory"
 
     def __init__(self, rate_e, t_s=None):
+        _check_array(np.shape(rate_e), None, dtype=np.asarray(rate_e).dtype)
         self.rate = np.asarray(rate_e, dtype=np.float32)
         self.t_s = None if t_s is None else np.asarray(t_s, np.float64)
         _check_array(self.rate.shape, self.t_s)
@@ -341,7 +351,7 @@ class ArraySource:
         for i, j in bounds:
             ov = end - i if end > i else 0
             rate = self.rate[i:j]
-            if count_bad(rate[ov:]):
+            if count_bad(rate[ov:], MAX_RATE_E):
                 check_rates(rate[ov:], offset=i + ov)
             end = j
             yield rate, (None if self.t_s is None else self.t_s[i:j]), ov

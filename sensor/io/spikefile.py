@@ -183,6 +183,8 @@ def _read_h5(path):
     meta.setdefault("height", s.shape[1])
     meta.setdefault("width", s.shape[2])
     meta["n_intervals"] = s.shape[0]
+    from sensor.io.container import check_meta_numbers
+    check_meta_numbers(meta, path)
     return s, meta
 
 
@@ -190,6 +192,10 @@ def _read_layout(path, layout, height, width, drop_columns):
     """(spikes bool (T, H, W) in image orientation, meta dict) for one named layout."""
     if layout in ("dat", "vidar-raw"):
         if layout == "vidar-raw":
+            if width is not None and width != _VIDAR_RAW_W and not drop_columns:
+                raise SpikeFileError(f"the vidar-raw layout is {_VIDAR_RAW_W} columns wide ({_VIDAR_W} and "
+                                     f"{_VIDAR_RAW_W - _VIDAR_W} dropped); got {width}: read it with the dat "
+                                     "layout, or give the columns to drop", path=path, field="--width")
             h, w = height or _VIDAR_H, width or _VIDAR_RAW_W
             drop = drop_columns or (w - _VIDAR_W if w == _VIDAR_RAW_W else 0)
         else:

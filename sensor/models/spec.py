@@ -37,6 +37,9 @@ def parse_model_spec(spec) -> ModelSpec:
         raise UnknownMethodError("spike model", name, tuple(MODELS) + ("MODEL:RESET",))
     if reset and reset not in RESETS:
         raise UnknownMethodError("pixel reset", reset, RESETS)
+    if reset and name == "ideal":
+        raise InputError(f"'{spec}': the ideal model has no reset to choose (Algorithm 1 drops the charge at each "
+                         "firing); give 'ideal'", field="model")
     return ModelSpec(name, reset or None)
 
 

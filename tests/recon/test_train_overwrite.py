@@ -99,3 +99,25 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(tmp_path, m
     run.mkdir()  # a folder the user made is kept, empty again
     assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--batch-size", 1, *NET) == 2
     assert run.is_dir() and list(run.iterdir()) == []
+
+
+@pytest.mark.torch
+def test_resume_refuses_other_data_or_noise_model_and_a_file_as_out(tmp_path, capsys):
+    data = _tiny_data(tmp_path)
+    run = tmp_path / "run"
+    assert _cli("train", "--data", data, "--out", run, "--steps", 1, "--batch-size", 1, *NET) == 0
+    capsys.readouterr()
+    other = data.replace("lux=100", "lux=50")
+    assert _cli("train", "--data", other, "--out", run, "--steps", 2, "--resume", "--quiet") == 2
+    err = capsys.readouterr().err
+    assert "--data" in err and "config.json" in err and "lux=50" in err and len(err.strip().splitlines()) == 1, err
+    assert _cli("train", "--data", data, "--out", run, "--steps", 2, "--resume", "--noise-model", "ideal",
+                "--quiet") == 2
+    assert "--noise-model" in capsys.readouterr().err
+    assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["step"] == 1
+    (tmp_path / "victim.npz").write_bytes(b"keep")
+    for out in (tmp_path / "victim.npz", tmp_path / "victim.npz" / "sub"):
+        assert _cli("train", "--data", data, "--out", out, "--steps", 1, *NET) == 2
+        err = capsys.readouterr().err
+        assert "victim.npz" in err and "--out" in err and "Error" not in err, err
+    assert (tmp_path / "victim.npz").read_bytes() == b"keep"
