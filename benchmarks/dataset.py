@@ -126,7 +126,7 @@ def warm_numba(models: list[str]) -> float:
 
 def bare_launch(s, spp: int, times_s: list[float], seed: int, warm: int) -> dict:
     """samples/s of the renderer's own launch (``render_raw``) of ``s``'s scene at ``spp``: ``warm`` untimed
-    calls at ``times_s[0]``, then one timed call at each time. Also the renderer's set-up (load + light meter)
+    calls at those times (cycling), then one timed call at each time. Also the renderer's set-up (load + light meter)
     [s]."""
     from render2spike.dataset import _load_source_scene
     from render2spike.render.renderer import SceneRenderer
@@ -134,8 +134,8 @@ def bare_launch(s, spp: int, times_s: list[float], seed: int, warm: int) -> dict
     t0 = time.perf_counter()
     rnd = SceneRenderer(scene)
     setup_s = time.perf_counter() - t0
-    for _ in range(warm):
-        rnd.render_raw(times_s[0], seed, spp)
+    for i in range(warm):  # at the timed calls' times (a launch may record anew at a new time)
+        rnd.render_raw(times_s[i % len(times_s)], seed, spp)
     calls = []
     for t in times_s:
         t1 = time.perf_counter()
@@ -240,7 +240,7 @@ def write_md(path: Path, res: dict) -> Path:
         f"after the bare launches {res['load_end']}",
         f"- spec: `{json.dumps(res['spec'], sort_keys=True)}`", "",
         f"**{_fmt(res['camera_s_per_hour'])} camera-seconds of spikes plus ground truth per hour** at {h} x {w} "
-        f"pixels: {res['n_made']} clips made ({res['n_done']} of {res['n_samples']} done), "
+        f"pixels: {res['n_made']} clip(s) made ({res['n_done']} of {res['n_samples']} done), "
         f"{_fmt(res['camera_s'], 3)} camera-seconds in {_fmt(res['wall_s'])} s of `build_dataset` "
         f"(renders {_fmt(res['renders_s'])} s, samples {_fmt(res['samples_s'])} s, the rest "
         f"{_fmt(res['wall_s'] - res['renders_s'] - res['samples_s'])} s: planning, checks, manifest, summary).",
@@ -332,8 +332,12 @@ def main(argv=None) -> int:
     if (work / "dataset").exists():
         shutil.rmtree(work / "dataset")  # a fresh dataset: a rerun must not resume a finished one
     cmd = "python benchmarks/dataset.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    from sensor.errors import InputError
     try:
         res = measure(spec, work, a.bare_calls, a.bare_warm, warm=not a.cold, log=lambda *x: print(*x, flush=True))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     finally:
         if not a.keep:
             shutil.rmtree(work / "dataset", ignore_errors=True)
