@@ -13,11 +13,14 @@
 #   6. with LAUNCH_T=seconds (0 or unset: skipped), benchmarks/render_launch.py --launch frozen on each bundled scene's
 #      window at 16 spp (LAUNCH_SCENES overrides the scenes): a frame's scene update (this project's pose vs Mitsuba's
 #      update, an OptiX rebuild where an object moves), the frozen call and the wait, on the auto-selected variant.
+#   7. with DATASET_T=seconds (0 or unset: skipped), benchmarks/dataset.py: camera-seconds of spikes plus truth per
+#      hour of its small default spec, where each clip's time goes, the render's samples/s against a bare launch,
+#      on the auto-selected variant (about a minute; report in OUT_DIR/dataset/dataset.md).
 # REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
 # the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: auto
 # only, the README's command as it stands; its log is demo.txt, another launch's demo_LAUNCH.txt).
 # Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
-#        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] \
+#        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] [DATASET_T=120] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -96,6 +99,12 @@ for sc in ${LAUNCH_SCENES:-lambertian_plane rotating_disk room_pan translating_o
     --out "$OUT/launch" >> "$OUT/launch.txt" 2>&1 || { fail=1; stamp "launch split of $sc failed"; }
 done
 stamp "launch split done"
+}
+[ "${DATASET_T:-0}" -gt 0 ] && {
+stamp "dataset throughput (benchmarks/dataset.py, timeout ${DATASET_T} s)"
+timeout "$DATASET_T" python3 benchmarks/dataset.py --out "$OUT/dataset" > "$OUT/dataset.txt" 2>&1
+rc=$?; [ $rc -eq 0 ] || fail=1
+stamp "dataset benchmark exit $rc ($(grep -m1 -o '[0-9.e+]* camera-seconds[^*]*' "$OUT/dataset/dataset.md" 2>/dev/null))"
 }
 [ -n "${REPRO_SPP:-}" ] && {
 stamp "two runs of the same render (benchmarks/repro_check.py, spp ${REPRO_SPP}, default launch)"

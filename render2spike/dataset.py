@@ -819,7 +819,13 @@ def _scene_profile_spec(frames_folder: Path, s: SampleSpec):
 
 
 def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> dict:
-    """Make sample ``sid`` (simulate, store spikes, truth, frames, metadata) unless it exists. Idempotent."""
+    """Make sample ``sid`` (simulate, store spikes, truth, frames, metadata) unless it exists. Idempotent.
+
+    -> ``{"id", "status", "skipped", "seconds"}`` and, for a sample made here, ``"timing"``: seconds per stage
+    (``read``: the frames read back; ``simulate``: photoelectron rate and spikes; ``truth``: the clean images
+    and window averages; ``write``: the sample's files), each measured with :func:`time.perf_counter`, their
+    sum at most ``seconds`` (the rest: imports, the profile, the checks).
+    """
     from render2spike.render.scene import build_profile
     from render2spike.studies.common import (clean_image, clean_window_average, parse_model_spec, profile_for,
                                              simulate_clip, window_centers)
@@ -832,7 +838,17 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
     if (final / "sample.json").is_file():
         return {"id": sid, "status": "done", "skipped": True, "seconds": 0.0}
     frames_folder = Path(frames_folder)
+    clock = time.perf_counter()
+    timing = {"read": 0.0, "simulate": 0.0, "truth": 0.0, "write": 0.0}
+
+    def lap(stage: str) -> None:  # the time since the last lap goes to ``stage``
+        nonlocal clock
+        now = time.perf_counter()
+        timing[stage] += now - clock
+        clock = now
+
     fs = read_frames(frames_folder)
+    lap("read")
     man = fs.manifest
     ref_lux = float(man.get("illuminance_lux", man.get("target_lux", 0)) or 0)
     lux = ref_lux if s.lux is None else s.lux
@@ -843,14 +859,18 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
     base = build_profile(spec) if isinstance(spec, dict) else spec
     prof = profile_for(base, fs.shape, s.model)
     scale = np.float32(lux / ref_lux)
+    clock = time.perf_counter()  # the profile's set-up above is in none of the stages
     phi = fs.phi_stack().astype(np.float32) * scale
     t = np.asarray(fs.times_s, np.float64)
+    lap("read")
     rate = photoelectron_rate(phi, prof).astype(np.float32)
     spikes = simulate_clip(rate, t, prof, s.model, s.seed, s.preroll)
     T = spikes.shape[0]
+    lap("simulate")
     centers = window_centers(T, min(s.window, T), s.centers)
     clean = np.stack([clean_image(rate, t, c, prof) for c in centers])
     avg = np.stack([clean_window_average(rate, t, c, min(s.window, T), prof) for c in centers])
+    lap("truth")
 
     tmp = final.parent / f".tmp-{sid}-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
@@ -860,6 +880,7 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
             lux_frames = np.stack([fs.read(i).illuminance_lux for i in range(len(fs))]).astype(np.float32) * scale
         except Exception:  # frames without an E channel
             lux_frames = None
+        lap("read")
         model, reset = parse_model_spec(s.model)
         info = {"format": DATASET_FORMAT + "-sample", "version": DATASET_VERSION, "id": sid, "index": s.index,
                 "render_key": Path(frames_folder).name, "source": s.source, "sets": list(s.sets),
@@ -893,10 +914,11 @@ def sample_task(s: SampleSpec, sid: str, frames_folder: str, out_root: str) -> d
             if not (final / "sample.json").is_file():  # someone else finished it? else a real error
                 raise
             shutil.rmtree(tmp, ignore_errors=True)
+        lap("write")
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return {"id": sid, "status": "done", "skipped": False, "seconds": time.perf_counter() - t0}
+    return {"id": sid, "status": "done", "skipped": False, "seconds": time.perf_counter() - t0, "timing": timing}
 
 
 # ------------------------------------------------------------------------------------------------ the run
@@ -1322,6 +1344,8 @@ def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, make_client, w
         if sid in on_disk:
             rec["status"] = "done"
             rec["seconds"] = prev.get("seconds") if isinstance(prev, dict) else None
+            if isinstance(prev, dict) and isinstance(prev.get("timing"), dict):
+                rec["timing"] = prev["timing"]
         records[sid] = rec
     manifest = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "spec": spec,
                 "spec_file": str(spec_path) if spec_path else None, "spec_hash": spec_hash,
@@ -1366,6 +1390,8 @@ def _run(pl: Plan, spec, spec_path, spec_hash, out: Path, client, make_client, w
         if error is None:
             rec["status"] = "done"
             rec["seconds"] = result.get("seconds")
+            if result.get("timing") is not None:  # [s] per stage of sample_task
+                rec["timing"] = result["timing"]
             rec.pop("error", None)
             n_made += 0 if result.get("skipped") else 1
         else:

@@ -139,6 +139,11 @@ def test_one_render_serves_every_lux(tmp_path):
     a, b = sorted((tmp_path / "samples").iterdir(), key=lambda p: json.loads((p / "sample.json").read_text())["index"])
     pa, pb = sensor.read_frames(a).phi_stack(), sensor.read_frames(b).phi_stack()
     np.testing.assert_allclose(pb, 10 * pa, rtol=1e-6)
+    # the render records where its time went (benchmarks/dataset.py reads it): stages within its seconds
+    fm = json.loads((next((tmp_path / "renders").iterdir()) / "frames.json").read_text())
+    st = fm["render_stage_seconds"]
+    assert set(st) == {"start", "load", "meter", "pilot", "keyframes"} and min(st.values()) >= 0
+    assert st["meter"] > 0 and st["keyframes"] > 0 and sum(st.values()) <= fm["render_seconds"] * (1 + 1e-9)
 
 
 def test_crossing_reset_is_a_model_axis(frames, tmp_path):
@@ -471,3 +476,23 @@ def test_a_frames_folders_key_covers_its_pixels_not_only_its_manifest(tmp_path):
     first = sorted(p.name for p in a.glob("*.exr"))[0]
     shutil.copy(c / first, b / first)
     assert (b / "frames.json").read_bytes() == man and _frames_key(a, man) != _frames_key(b, man)
+
+
+# ------------------------------------------------------------------------------------------------ timings
+def test_each_sample_records_where_its_time_went(frames, tmp_path):
+    out = tmp_path / "out"
+    build_dataset(_tiny(frames), out, workers=0, progress=False, log=lambda *a: None)
+    recs = json.loads((out / "manifest.json").read_text())["samples"]
+    assert len(recs) == 1
+    for rec in recs.values():
+        tm = rec["timing"]
+        assert set(tm) == {"read", "simulate", "truth", "write"}
+        assert all(v > 0 for v in tm.values()), tm  # every stage ran, and was timed
+        assert sum(tm.values()) <= rec["seconds"], (tm, rec["seconds"])
+
+
+def test_the_dataset_benchmark_has_a_help():
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dataset.py"), "--help"], capture_output=True,
+                         text=True, cwd=ROOT, env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "camera-seconds" in out.stdout and "--spec" in out.stdout and "--out" in out.stdout

@@ -97,9 +97,12 @@ def _render_locked(scene: Scene, folder: FramesFolder, overwrite: bool, progress
                   **launch_record(launch)}, overwrite)
 
     from .renderer import SceneRenderer
+    t_load = time.perf_counter()
     rnd = SceneRenderer(scene, variant, calibration=folder.state.get("calibration"), launch=launch)
     folder.state["calibration"] = rnd.calibration
+    t_pilot = time.perf_counter()
     spp, budget, var_floor = _noise_budget(rnd, scene, folder, log)
+    t_frames = time.perf_counter()
     source = FrameSource(scene, var_floor, rnd.rate_scale(), progress)
     frames = _Keyframes(rnd, scene, folder, source, spp, launch, scene_hash)
     try:
@@ -112,8 +115,13 @@ def _render_locked(scene: Scene, folder: FramesFolder, overwrite: bool, progress
             listed = [{"file": folder.saved(t)["file"], "time_s": source.time(t)} for t in ticks]
             ratios = folder.keep_only(ticks)
             seconds = time.perf_counter() - t_start
+            # [s]: the folder and launch checks; the scene loaded into Mitsuba (SceneRenderer.load_s); the rest of
+            # the renderer's set-up, the light meter (none when resumed); the noise pilot; the keyframes
+            # rendered, checked and written
+            stages = {"start": t_load - t_start, "load": rnd.load_s, "meter": t_pilot - t_load - rnd.load_s,
+                      "pilot": t_frames - t_pilot, "keyframes": t_start + seconds - t_frames}
             manifest = folder.prepare_finish(scene.profile.height, scene.profile.width, listed, _manifest(
-                scene, rnd, folder, source, frames, ticks, ratios, budget, seconds, log))
+                scene, rnd, folder, source, frames, ticks, ratios, budget, seconds, log, stages))
     finally:
         source.close()
     folder.finish()
@@ -218,7 +226,7 @@ class _Keyframes:
 
 
 def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, frames: _Keyframes, ticks, ratios,
-              budget, seconds: float, log) -> dict:
+              budget, seconds: float, log, stages: dict) -> dict:
     """The finished render's manifest (besides the frames list); warns when the measured render noise misses
     its target."""
     rcfg = scene.render
@@ -252,6 +260,7 @@ def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, fram
         "n_rendered_this_run": frames.n_rendered,
         "n_resumed": folder.n_resumed,
         "render_seconds": seconds,
+        "render_stage_seconds": stages,
         "provenance": provenance(stage="render"),
     }
     return json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
