@@ -115,7 +115,7 @@ def test_checkpoint_errors(tmp_path):
     with pytest.raises(InputError, match="not a render2spike RSIR checkpoint"):
         load_checkpoint(bad)
     (tmp_path / "junk.pt").write_text("not a checkpoint")
-    with pytest.raises(InputError, match="readable"):
+    with pytest.raises(InputError, match="not a PyTorch checkpoint"):
         load_checkpoint(tmp_path / "junk.pt")
 
 
