@@ -63,7 +63,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
-from tables import fmt as _fmt  # noqa: E402
+from tables import fmt as _fmt, machine  # noqa: E402,F401
 
 SENSOR_HW = (250, 400)  # the vidar-default sensor the bundled scenes' windows are cut from
 
@@ -72,21 +72,7 @@ def _load() -> tuple:
     return tuple(round(x, 2) for x in os.getloadavg())
 
 
-def machine() -> dict:
-    """CPU model, cores and (where ``nvidia-smi`` answers) the GPU of this machine."""
-    cpu = ""
-    try:
-        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    gpu = None
-    try:
-        out = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total", "--format=csv,noheader"],
-                             capture_output=True, text=True, timeout=30)
-        gpu = out.stdout.strip() or None
-    except (OSError, subprocess.TimeoutExpired):
-        pass
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "gpu": gpu}
+
 
 
 def commit() -> str:

@@ -41,7 +41,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(1, str(ROOT))  # the checkout's packages, as the children get them (PYTHONPATH)
-from tables import fmt as _fmt  # noqa: E402
+from tables import fmt as _fmt, machine  # noqa: E402,F401
 
 SCENES = ("rotating_disk", "translating_object", "room_pan", "lambertian_plane")
 GPU = "cuda_ad_spectral"
@@ -53,21 +53,7 @@ def _load():
     return tuple(round(x, 2) for x in os.getloadavg())
 
 
-def machine() -> dict:
-    """CPU model, cores and (where ``nvidia-smi`` answers) the GPU and driver of this machine."""
-    cpu = ""
-    try:
-        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    gpu = None
-    try:
-        out = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
-                             capture_output=True, text=True, timeout=30)
-        gpu = out.stdout.strip() or None
-    except (OSError, subprocess.TimeoutExpired):
-        pass
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "gpu": gpu}
+
 
 
 def works(variant: str) -> tuple[bool, str]:

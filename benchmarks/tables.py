@@ -12,3 +12,22 @@ def fmt(x, nd: int = 2) -> str:
     if abs(x) >= 1e5 or (0 < abs(x) < 1e-2):
         return f"{x:.2e}"
     return f"{x:.{nd}f}"
+
+
+def machine() -> dict:
+    """CPU model, cores and (where ``nvidia-smi`` answers) the GPU and driver of this machine."""
+    import os
+    import subprocess
+    cpu = ""
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    gpu = None
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=30)
+        gpu = out.stdout.strip() or None
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "gpu": gpu}

@@ -84,7 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from sensor.errors import DependencyError, InputError, UnknownMethodError
-from sensor.io.fileio import (atomic_path, json_bytes, package_version, provenance, write_bytes_atomic,
+from sensor.io.fileio import (atomic_path, json_bytes, package_version, provenance, same_or_inside, write_bytes_atomic,
                              write_json_atomic, write_text_atomic)
 
 DATASET_FORMAT = "render2spike-dataset"
@@ -1136,12 +1136,7 @@ def _note_workers(client, resources, scheduler, log) -> None:
                 "wait until such a worker joins (start workers with `dask worker ... --resources ...`)")
 
 
-def _same_or_inside(out: Path, src: Path) -> bool:
-    try:
-        out, src = out.resolve(), src.resolve()
-    except OSError:
-        return False
-    return out == src or src in out.parents
+
 
 
 def _folder_state(out: Path, spec_hash: str, overwrite: bool) -> str:
@@ -1223,7 +1218,7 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
     spec, spec_path = load_spec(spec)
     out = Path(out)
     for i, sc in enumerate(spec["scenes"]):
-        if "frames" in sc and _same_or_inside(out, Path(sc["frames"])):
+        if "frames" in sc and same_or_inside(out, Path(sc["frames"])):
             raise InputError(f"the output would sit inside the frames folder of scenes.{i}; choose another --out",
                              path=out, field="--out")
     pl = prepare(spec, spec_path, log)

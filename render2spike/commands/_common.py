@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 
 from sensor.errors import InputError
+from sensor.io.fileio import same_or_inside
 
 OVERWRITE_HELP = "replace an existing output (without it, an existing output is refused)"
 
@@ -23,13 +24,7 @@ def add_overwrite(p, help: str = OVERWRITE_HELP) -> None:
     p.add_argument("--overwrite", action="store_true", help=help)
 
 
-def _same_or_inside(out: Path, src: Path) -> bool:
-    """Whether ``out`` is ``src`` or lies inside the folder ``src``."""
-    try:
-        out, src = out.resolve(), src.resolve()
-    except OSError:
-        return False
-    return out == src or src in out.parents
+
 
 
 def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = False, flag: str = "--out",
@@ -51,7 +46,7 @@ def check_output(out, *, inputs=(), overwrite: bool = False, folder: bool = Fals
         if src is None:
             continue
         src = Path(src)
-        if src.exists() and _same_or_inside(out, src):
+        if src.exists() and same_or_inside(out, src):
             raise InputError(f"the output would overwrite (or sit inside) the input {src}; choose another {flag}",
                              path=out, field=flag)
     if folder:

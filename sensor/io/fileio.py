@@ -360,3 +360,13 @@ def provenance(**extra) -> dict:
     }
     rec.update(extra)
     return rec
+
+
+def same_or_inside(out, src) -> bool:
+    """Whether the path ``out`` is ``src`` or lies inside the folder ``src`` (both resolved; False if either
+    cannot be resolved)."""
+    try:
+        out, src = Path(out).resolve(), Path(src).resolve()
+    except OSError:
+        return False
+    return out == src or src in out.parents
