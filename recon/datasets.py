@@ -60,9 +60,9 @@ class Sample:
         TFP windows [spikes/interval], the network input.
     target : float32 (1, H, W)
         Ground truth [ideal spikes per interval = rate_e / threshold_e].
-    maps : float32 (3, H, W)
-        Dark-event probability per interval, PRNU gain and hot-pixel indicator
-        of the pixels (:func:`sensor_maps`).
+    maps : float32 (4, H, W)
+        Dark floor (expected dark spikes per interval), PRNU gain, hot-pixel
+        and dark-as-charge indicators of the pixels (:func:`sensor_maps`).
     spikes : bool (L, H, W) or None
         The spike stream (L >= M intervals), kept for classic methods.
     center : int

@@ -7,8 +7,9 @@ no code was copied.
 
 Input: ``windows`` float (B, N, H, W), N = 10 TFP windows of 32 intervals
 (M = 320), in **spikes per interval**; optional per-pixel sensor ``maps``
-(B, 2, H, W): the dark-event probability per interval (``1 - exp(-mu_DC)``)
-and the PRNU gain (dimensionless). Output: the clean intensity at the centre
+(B, >= 2, H, W): the dark floor, expected dark spikes per interval
+(:attr:`sensor.SensorProfile.dark_spike_rate`), and the PRNU gain (dimensionless); the output head also
+reads the hot-pixel and dark-as-charge indicators (:func:`recon.profiles.sensor_maps`). Output: the clean intensity at the centre
 of the M intervals in the dataset's target unit (``rate_e / threshold_e``,
 "ideal spikes per interval"; see :mod:`recon.datasets`).
 

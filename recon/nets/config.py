@@ -42,7 +42,7 @@ class RSIRConfig:
     docs/recon.md, deviations).
 
     ``linearise``: before the network, each window's spike rate ``r`` becomes
-    ``(r - p_dark) / (1 - p_dark) / g`` with the maps' dark-event probability
+    ``(r - p_dark) / (1 - p_dark) / g`` with the maps' dark floor
     and PRNU gain (unchanged without maps): the expected dark spikes removed
     and the gain divided out, which for the crossing reset (read-out ~ linear
     in the light up to ~0.9 spikes per interval) is already close to the

@@ -80,7 +80,7 @@ class RSIRNet(nn.Module):
             return like.new_zeros(B, n, H, W)
         _check_4d(maps, "maps")
         if maps.shape[1] < n:
-            raise InputError(f"maps need {n} channels (dark probability, PRNU gain); got {maps.shape[1]}",
+            raise InputError(f"maps need {n} channels (dark floor, PRNU gain); got {maps.shape[1]}",
                              field="maps")
         if maps.shape[0] != B or maps.shape[-2:] != like.shape[-2:]:
             raise InputError(f"maps {tuple(maps.shape)} do not match windows {tuple(like.shape)}", field="maps")
