@@ -80,6 +80,8 @@ DARK_CURRENT_SPREAD = 0.46  # sigma of the log of the dark-current map (RSIR's N
 DARK_CURRENT_MEDIAN_E = float(hz_to_per_interval(CALIBRATED_DARK_RATE_HZ, INTERVAL_S)) * THRESHOLD_E
 
 PROVENANCE = dict(EVENTS_PROVENANCE, **{
+    "reset": EVENTS_PROVENANCE["reset"].replace("(both simulated with this profile at",
+                                                "(both simulated with vidar-events' values at"),
     "prnu_gain": "Gaussian, sigma 0.056 around 1: RSIR's calibration of a real Vidar (its relative gain map Nl has "
                  "sd/mean 5.6 %; the spike-rate spread over pixels on its 335-lux flat is 4.9 %). SCSim's photo-gain "
                  "spread (0.0584) agrees.",
