@@ -123,7 +123,10 @@ SPEC_SCHEMA = {
             {"type": "object", "additionalProperties": False, "required": ["scene"],
              "properties": {"scene": {"type": "string"}, "set": {"type": "array", "items": {"type": "string"}}}},
             {"type": "object", "additionalProperties": False, "required": ["frames"],
-             "properties": {"frames": {"type": "string"}, "profile": {"type": "string"}}}]}},
+             "properties": {"frames": {"type": "string"}, "profile": {"type": "string"}}},
+            {"type": "object", "additionalProperties": False, "required": ["procedural"],
+             "properties": {"procedural": {"type": "object", "required": ["count"]},
+                            "set": {"type": "array", "items": {"type": "string"}}}}]}},
         "set": {"type": "array", "items": {"type": "string"}},
         "duration_s": _AXIS, "lux": _AXIS,
         "params": {"type": "object", "additionalProperties": _AXIS},
@@ -243,8 +246,12 @@ def load_spec(spec) -> tuple[dict, Path | None]:
     from render2spike.render.scene import resolve_scene_path
     base = path.parent if path else Path.cwd()
     seen = {}
+    out["scenes"] = _expand_procedural(out["scenes"], path)
     for i, sc in enumerate(out["scenes"]):
-        if isinstance(sc, dict) and "frames" in sc:
+        if isinstance(sc, dict) and "procedural" in sc:
+            ident = json.dumps(sc, sort_keys=True)
+            _check_sets(sc["set"], path, f"scenes.{i}.set")
+        elif isinstance(sc, dict) and "frames" in sc:
             f = Path(sc["frames"])
             f = f if f.is_absolute() else base / f
             _check_frames_source(f, path, f"scenes.{i}.frames")
@@ -278,6 +285,44 @@ def load_spec(spec) -> tuple[dict, Path | None]:
                              "already rendered: its samples would repeat; put frames folders in a spec without "
                              f"'{fixed[0]}'", path=path, field=fixed[0])
     return out, path
+
+
+def _expand_procedural(scenes: list, path) -> list:
+    """The spec's scenes with each ``{procedural: {count: N, seed: S, ...}}`` entry replaced by its N generated
+    scenes (:mod:`render2spike.scenegen`), each ``{procedural: {seed, index, options}, set}``; the options checked
+    here (errors name ``scenes.I.procedural.KEY``). Workers generate each scene again from its seed and index."""
+    from render2spike.scenegen import check_options
+    out = []
+    for i, sc in enumerate(scenes):
+        if not (isinstance(sc, dict) and "procedural" in sc):
+            out.append(sc)
+            continue
+        opts = dict(sc["procedural"])
+        count, seed = opts.pop("count"), opts.pop("seed", 0)
+        for key, v, most in (("count", count, MAX_SAMPLES), ("seed", seed, 2 ** 32 - 1)):
+            if not (isinstance(v, int) and not isinstance(v, bool) and (v >= 1 if key == "count" else v >= 0)
+                    and v <= most):
+                raise InputError(f"must be an integer {'>= 1' if key == 'count' else '>= 0'} and <= {most}; got "
+                                 f"{v!r}", path=path, field=f"scenes.{i}.procedural.{key}")
+        try:
+            checked = check_options(opts)
+        except InputError as exc:
+            text = str(exc).split(": ", 1)[1] if exc.field else str(exc)  # without its "field '...'" prefix
+            raise InputError(text, path=path, field=f"scenes.{i}.{exc.field or 'procedural'}") from None
+        given = {k: checked[k] for k in sorted(opts)}
+        out.extend({"procedural": {"seed": int(seed), "index": k, "options": given}, "set": list(sc.get("set", []))}
+                   for k in range(count))
+    return out
+
+
+def _scene_arg(source: dict):
+    """What :func:`render2spike.render.scene.load_scene` takes for a spec scene: its file, or the generated
+    scene mapping of a procedural one."""
+    if "procedural" in source:
+        from render2spike.scenegen import generate_scene
+        g = source["procedural"]
+        return generate_scene(int(g["seed"]), int(g["index"]), g.get("options"))
+    return source["scene"]
 
 
 def _check_sets(sets, path, where: str) -> None:
@@ -549,8 +594,8 @@ def _hash(obj) -> str:
 def _load_source_scene(s: SampleSpec, cache: dict | None = None):
     from render2spike.render.scene import load_scene
     try:
-        return load_scene(s.source["scene"], list(s.source.get("set", [])) + list(s.sets), duration_s=s.duration_s,
-                          cache=cache)
+        return load_scene(_scene_arg(s.source), list(s.source.get("set", [])) + list(s.sets),
+                          duration_s=s.duration_s, cache=cache)
     except InputError as exc:
         raise InputError(f"sample {s.index}: {exc}", field="scenes") from None
 
@@ -642,7 +687,7 @@ def _scene_error(s: SampleSpec, spec: dict, path, cache: dict, exc: Exception) -
         tries.append((_axis_field(spec, f"params.{k}", float(v)), own + list(spec["set"]) + [item], None, item))
     for where, sets, dur, what in tries:
         try:
-            load_scene(s.source["scene"], sets, duration_s=dur, cache=cache)
+            load_scene(_scene_arg(s.source), sets, duration_s=dur, cache=cache)
         except Exception as e2:  # noqa: BLE001 - reported with the key that caused it
             text = str(e2) if isinstance(e2, InputError) else f"{type(e2).__name__}: {e2}"
             if where == "set" and isinstance(e2, InputError) and e2.field:

@@ -74,6 +74,9 @@ ESTIMATOR_VERSION = 3
 #: (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`). A constant, not the machine's memory:
 #: the split is part of the estimator, so frames do not depend on where they were rendered
 MAX_SAMPLES_PER_LAUNCH = 1 << 26
+#: a launch of a list of pixels (:meth:`FrozenLaunch.launch_pixels`) pads the list to a multiple of this many
+#: pixels: the padded length is part of what is recorded, so lists of nearly equal length share one recording
+PIXEL_BUCKET = 256
 
 
 #: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
@@ -297,6 +300,7 @@ class FrozenLaunch:
         self._integrator = mi_scene.integrator()
         self.frozen = bool(frozen)
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
+        self._fn_px = dr.freeze(self._launch_px) if self.frozen else self._launch_px
         self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
 
     def max_samples(self) -> int:
@@ -362,16 +366,68 @@ class FrozenLaunch:
         h, w = self.height, self.width
         return {c: np.asarray(x, dtype=np.float64).reshape(h, w) / spp for c, x in zip(self.names, out)}
 
+    def launch_pixels(self, seed: int, spp: int, cam_to_world: np.ndarray, pixels: np.ndarray):
+        """Start a render of the pixels ``pixels`` (flat indices, row by row, into the H x W frame) at ``spp``
+        samples each; -> the launched render for :meth:`pixel_values`, not yet waited for.
+
+        The same estimator as :meth:`launch` (rays, wavelengths, sums), on a list of pixels: the renderer's
+        static-region reuse (:mod:`.reuse`) renders only the pixels something moving covers. The list is padded
+        (with its last pixel) to a multiple of :data:`PIXEL_BUCKET` pixels, whose values are dropped: the padded
+        length is an input of the recording (one recording per length and spp), so a list that changes a little
+        from frame to frame replays the same recording. ``spp`` must be a count the sampler takes exactly."""
+        mi = self.mi
+        pixels = np.asarray(pixels, np.int64).ravel()
+        n_pix = int(pixels.size)
+        if n_pix == 0:
+            return spp, n_pix, None
+        spp = self.sample_count(spp)
+        padded = -(-n_pix // PIXEL_BUCKET) * PIXEL_BUCKET
+        if padded * spp >= 1 << 32:
+            from sensor.errors import InputError
+            raise InputError(f"{n_pix} pixels at {spp} spp is 2^32 samples or more in one launch", field="spp")
+        idx = np.empty(padded, np.uint32)
+        idx[:n_pix] = pixels
+        idx[n_pix:] = pixels[-1]
+        m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
+        key = ("px", spp, padded)
+        if self.frozen and key not in self._seen_spp:
+            import gc
+            gc.collect()
+            self._seen_spp.add(key)
+        seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
+        out = self._fn_px(self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx), padded)
+        return spp, n_pix, out
+
+    def pixel_values(self, launched) -> dict[str, np.ndarray]:
+        """``{channel: float64 (n,)}``: the per-pixel means of a :meth:`launch_pixels`, in the order of its
+        ``pixels`` (waits for it)."""
+        spp, n_pix, out = launched
+        if out is None:
+            return {c: np.zeros(0) for c in self.names}
+        return {c: np.asarray(x, dtype=np.float64)[:n_pix] / spp for c, x in zip(self.names, out)}
+
     # --------------------------------------------------------- the recorded function
     def _launch(self, scene, seed, m, spp, tables, quantiles):
         mi, dr = self.mi, self.dr
+        n = self.height * self.width * spp
+        idx = dr.arange(mi.UInt32, n) // spp  # the sample's pixel: spp consecutive samples each
+        return self._trace(scene, seed, m, spp, tables, quantiles, idx, n)
+
+    def _launch_px(self, scene, seed, m, spp, tables, quantiles, pixels, n_pix):
+        mi, dr = self.mi, self.dr
+        n = int(n_pix) * spp
+        idx = dr.gather(mi.UInt32, pixels, dr.arange(mi.UInt32, n) // spp)  # spp consecutive samples a pixel
+        return self._trace(scene, seed, m, spp, tables, quantiles, idx, n)
+
+    def _trace(self, scene, seed, m, spp, tables, quantiles, idx, n):
+        """The samples of pixels ``idx`` (one entry a sample, ``spp`` consecutive ones a pixel; ``n`` of them)
+        traced and summed per pixel: -> per-channel sums."""
+        mi, dr = self.mi, self.dr
         h, w = self.height, self.width
-        n = h * w * spp
         sampler = self._sampler.clone()
         sampler.set_sample_count(spp)
         sampler.set_samples_per_wavefront(spp)
         sampler.seed(seed, n)
-        idx = dr.arange(mi.UInt32, n) // spp  # the sample's pixel: spp consecutive samples each
         py = idx // w
         px = idx - py * w
         pos = mi.Vector2f(mi.Float(px), mi.Float(py)) + sampler.next_2d()  # Mitsuba's order: position first

@@ -46,8 +46,9 @@ from sensor.io.fileio import provenance
 from . import backend
 from .folder import FramesFolder
 from .launch import DEFAULT_LAUNCH, check_launch, launch_record, launch_taken, refusal_hint, resolve_launch
-from .noise import (VERIFY_EVERY, dark_current_mean_e, keyframes_per_window, pilot_budget, render_noise_ratio,
-                    verify_ratios)
+from .noise import (VERIFY_EVERY, dark_current_mean_e, keyframes_per_window, level_k_factors, pilot_budget,
+                    render_noise_ratio, verify_ratios)
+from .sampling import TimeGrid
 from .scene import Scene
 from .source import FrameSource
 
@@ -101,10 +102,12 @@ def _render_locked(scene: Scene, folder: FramesFolder, overwrite: bool, progress
     rnd = SceneRenderer(scene, variant, calibration=folder.state.get("calibration"), launch=launch)
     folder.state["calibration"] = rnd.calibration
     t_pilot = time.perf_counter()
-    spp, budget, var_floor = _noise_budget(rnd, scene, folder, log)
+    reuse = _Reuse(rnd, scene, launch)
+    spp, budget, var_floor = _noise_budget(rnd, scene, folder, log, reuse)
+    reuse.start(budget, var_floor, rnd)
     t_frames = time.perf_counter()
-    source = FrameSource(scene, var_floor, rnd.rate_scale(), progress)
-    frames = _Keyframes(rnd, scene, folder, source, spp, launch, scene_hash)
+    source = FrameSource(scene, var_floor, rnd.rate_scale(), progress, level_var=budget["level_var"])
+    frames = _Keyframes(rnd, scene, folder, source, spp, launch, scene_hash, reuse)
     try:
         with folder.writing():
             ticks = source.walk(frames.at)  # each tick: the folder's frame, or rendered, written and journalled
@@ -147,10 +150,11 @@ def _box(img, r: int):
     return uniform_filter(np.asarray(img, np.float64), size=2 * r + 1, mode="nearest")
 
 
-def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log):
+def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log, reuse: "_Reuse"):
     """The render's spp and noise budget (pilot pairs at t = 0, convergence fitted: :func:`.noise.pilot_budget`;
     a resumed folder's own), saved in the render state; -> ``(spp, budget, var_floor)``, ``var_floor`` the
-    noise floor of the change metric: the smoothed pilot variance, scaled to the chosen spp."""
+    noise floor of the change metric: the smoothed pilot variance, scaled to the chosen spp. With static-region
+    reuse (:mod:`.reuse`) the spp is the dynamic region's and ``budget["static"]`` the static frame's."""
     rcfg = scene.render
     ncfg = rcfg["noise"]
     W = int(ncfg["window_intervals"])
@@ -159,16 +163,29 @@ def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log):
     # render: no launch added. Not with spp = auto: the snapping chose the spp on those very pairs, and the
     # verification is there to check that choice on renders it did not see
     keep = rnd.keep_renders() if rcfg["spp"] != "auto" else contextlib.nullcontext()
+    pairs = {}
+    acfg = rcfg["adaptive"]
+    levels = TimeGrid.make(scene.duration_s, float(rcfg["keyframe_rate_hz"]), float(acfg["max_rate_hz"])).levels \
+        if acfg["enabled"] else 0
+    factors = level_k_factors(W, scene.profile.interval_s, float(rcfg["keyframe_rate_hz"]), levels)
     with keep:
         budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rnd.rate_scale(), snap=rcfg["spp"] == "auto",
-                                            dark_e=dark_current_mean_e(scene.profile))
+                                            dark_e=dark_current_mean_e(scene.profile), mask=reuse.budget_mask(),
+                                            keep=pairs, level_factors=factors)
+    if reuse.on:
+        budget["static"] = reuse.static_budget(pairs, rnd, scene)
     state = folder.state
     if "spp" in state and "noise_budget" in state:  # resuming: the frames already made fix the spp
         budget = state["noise_budget"]
         spp = int(state["spp"])
     else:
         spp = int(rcfg["spp"]) if rcfg["spp"] != "auto" else budget["spp"]  # taken exactly (launch_counts)
+        if rcfg["spp"] != "auto":  # a given spp is every keyframe's
+            budget["spp_levels"], budget["level_var"] = [spp] * (levels + 1), [1.0] * (levels + 1)
         state["spp"], state["noise_budget"] = spp, budget
+    # a folder begun before refined keyframes had their own spp holds the base spp at every level
+    budget.setdefault("spp_levels", [spp] * (levels + 1))
+    budget.setdefault("level_var", [1.0] * (levels + 1))
     folder.save_state()
     if rcfg["spp"] == "auto" and budget["clipped"]:
         log(f"render: note: the noise budget asks for {budget['spp_needed']} spp, more than max_spp = "
@@ -182,9 +199,11 @@ class _Keyframes:
     """The keyframe at a tick: read back from the folder, or rendered, checked and handed to its writer."""
 
     def __init__(self, rnd, scene: Scene, folder: FramesFolder, source: FrameSource, spp: int, launch: str,
-                 scene_hash: str):
+                 scene_hash: str, reuse: "_Reuse"):
         self.rnd, self.scene, self.folder, self.source = rnd, scene, folder, source
+        self.reuse = reuse
         self.spp, self.launch, self.scene_hash = int(spp), launch, scene_hash
+        self.spp_levels = [int(n) for n in folder.state["noise_budget"]["spp_levels"]]
         self.W = int(scene.render["noise"]["window_intervals"])
         self.K = keyframes_per_window(self.W, scene.profile.interval_s, float(scene.render["keyframe_rate_hz"]))
         self.made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name,
@@ -202,19 +221,27 @@ class _Keyframes:
         # grid (one extra render each): chosen by the tick, so a resumed render verifies the frames an
         # uninterrupted one does and writes the same files
         verify = tick % (VERIFY_EVERY * self.source.grid.step) == 0
-        f = rnd.render_frame(t_s, int(scene.render["seed"]), self.spp, variance=verify)
+        seed = int(scene.render["seed"])
+        spp = self.spp_levels[self.source.level(tick)]  # a refined keyframe's own (noise.level_k_factors)
+        if self.reuse.on:
+            f = self.reuse.frame(t_s, seed, spp, verify)
+            if tick == self.source.grid.n_ticks or (verify and tick > 0):
+                self.reuse.check(t_s, seed, spp, f)
+        else:
+            f = rnd.render_frame(t_s, seed, spp, variance=verify)
         if f["phi_var"] is None:
             ratio = float("nan")  # what render_noise_ratio gives without a variance
         else:
             rs = rnd.rate_scale()
-            ratio = render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, self.W, self.K,
+            k = np.where(f["dynamic"], self.K, 1.0) if self.reuse.on else self.K
+            ratio = render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, self.W, k,
                                        dark_current_mean_e(scene.profile))
         if not (np.isfinite(f["phi"]).all() and np.isfinite(f["lux"]).all()):
             bad = ~np.isfinite(f["phi"]) | ~np.isfinite(f["lux"])
             r, c = (int(x) for x in np.argwhere(bad)[0])
             raise InputError(f"the frame at t = {t_s:.6g} s has {int(bad.sum())} non-finite pixel(s), first at row "
                              f"{r}, column {c}: check the scene's light and material values", path=scene.path)
-        attrs = {"spp": self.spp, "render_noise_ratio": float(ratio), "render_noise_window_intervals": self.W,
+        attrs = {"spp": spp, "render_noise_ratio": float(ratio), "render_noise_window_intervals": self.W,
                  "variant": rnd.variant, "launch": self.launch, "scene_hash": self.scene_hash,
                  "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": self.made_by, "scene": scene.name}
@@ -252,11 +279,13 @@ def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, fram
         "launch": frames.launch,
         **launch_record(frames.launch),
         "spp": frames.spp,
+        "spp_by_level": frames.spp_levels,
         "noise_budget": budget,
         "render_noise_ratio": {"mean": float(np.nanmean(ratios)) if finite else None,
                                "max": float(np.nanmax(ratios)) if finite else None,
                                "window_intervals": frames.W, "keyframes_per_window": frames.K, **verified},
         "temporal_sampling": source.record(ticks),
+        "static_reuse": frames.reuse.record(log),
         "n_rendered_this_run": frames.n_rendered,
         "n_resumed": folder.n_resumed,
         "render_seconds": seconds,
@@ -264,3 +293,77 @@ def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, fram
         "provenance": provenance(stage="render"),
     }
     return json.loads(json.dumps(extra, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+class _Reuse:
+    """Static-region reuse (:mod:`.reuse`) for one render: on when :func:`.reuse.reuse_obstacle` finds nothing
+    against it. Holds the coverage test, the static frame, and the static checks made."""
+
+    def __init__(self, rnd, scene: Scene, launch: str):
+        from .reuse import Coverage, reuse_obstacle
+        self.why_not = reuse_obstacle(scene, launch)
+        self.on = self.why_not is None
+        self.cov = Coverage(rnd) if self.on else None
+        self.dynamic_t0 = self.cov(0.0) if self.on else None
+        if self.on and self.dynamic_t0.all():  # no pixel would ever take a static value (reuse.StaticFrame)
+            self.on, self.why_not, self.cov, self.dynamic_t0 = False, "moving objects cover every pixel at t = 0", \
+                None, None
+        self.static = None
+        self.checks = []
+        self.dyn_fractions = []
+
+    def budget_mask(self):
+        """The pixels the dynamic region's budget is measured on: those dynamic at t = 0, or every pixel when
+        none is (a moving object that enters the view later: the whole frame stands in for it)."""
+        if not self.on or not self.dynamic_t0.any():
+            return None
+        return self.dynamic_t0
+
+    def static_budget(self, pairs: dict, rnd, scene: Scene) -> dict:
+        """The static frame's spp from the pilot pairs (:func:`.reuse.static_spp`)."""
+        from .reuse import static_spp
+        ncfg = scene.render["noise"]
+        rs = rnd.rate_scale()
+        top = pairs[max(pairs)]
+        rate = 0.5 * (top[0] + top[1]) * rs + dark_current_mean_e(scene.profile)
+        return static_spp(pairs, ~self.dynamic_t0, rate, rs, int(ncfg["window_intervals"]),
+                          float(ncfg["target_ratio"]), int(ncfg["max_spp"]), rnd.effective_spp)
+
+    def start(self, budget: dict, var_floor, rnd) -> None:
+        """Render the static frame (seeds from the render seed, so a resumed render makes the same one)."""
+        if not self.on:
+            return
+        from .reuse import StaticFrame
+        spp = int(budget["static"]["spp"])
+        n = len(rnd.launch_counts(spp))
+        seeds = np.random.SeedSequence([int(rnd.scene.render["seed"]), 0x57A71C]).generate_state(2 * n, np.uint32)
+        self.static = StaticFrame(rnd, spp, seeds, ~self.dynamic_t0)
+        self.rnd = rnd
+        self._floor_raw = var_floor / rnd._factors[0] ** 2  # one keyframe's variance [raw Phi units^2], smoothed
+
+    def frame(self, t_s: float, seed: int, spp: int, variance: bool) -> dict:
+        from .reuse import render_frame_reused
+        f = render_frame_reused(self.rnd, self.static, self.cov, t_s, seed, spp, variance)
+        self.dyn_fractions.append(float(f["dynamic"].mean()))
+        return f
+
+    def check(self, t_s: float, seed: int, spp: int, f: dict) -> None:
+        """Render the whole frame at ``t_s`` and compare its static pixels with the static frame."""
+        from .reuse import static_check
+        self.checks.append(static_check(self.rnd, self.static, f["dynamic"], t_s, seed, spp, self._floor_raw))
+
+    def record(self, log) -> dict:
+        """The manifest's ``static_reuse``; warns when a static check finds the static region changed."""
+        if not self.on:
+            return {"applied": False, "why_not": self.why_not}
+        from .reuse import check_warning
+        warn = check_warning(self.checks)
+        if warn:
+            log(f"render: warning: {warn}")
+        st = self.static
+        return {"applied": True, "static_spp": st.spp, "static_seeds": st.seeds,
+                "static_pixels": int(st.valid.sum()),
+                "dynamic_fraction": {"t0": float(self.dynamic_t0.mean()),
+                                     "mean": float(np.mean(self.dyn_fractions)) if self.dyn_fractions else None,
+                                     "max": float(np.max(self.dyn_fractions)) if self.dyn_fractions else None},
+                "static_check": self.checks}

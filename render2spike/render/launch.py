@@ -164,9 +164,10 @@ def settings_of(scene, variant: str, launch: str = "film") -> dict:
     ``variant`` and its family (:func:`.backend.variant_family`: GPU and CPU frames are never mixed);
     ``frames_format`` 2 (frames named by tick, the light level stored in the render state); ``procedure``,
     how the spp is chosen: 2 for a given spp (taken exactly, in one launch per frame where the sampler
-    allows), 3 for ``spp: auto`` (the noise budget's answer snapped on measured pairs,
-    :func:`.noise.snap_to_measured`). The frozen launch adds its name and estimator version: its frames are
-    other Monte Carlo estimates than the film's, and no folder mixes frames of two estimators. The film launch
+    allows), 4 for ``spp: auto`` (the noise budget's answer snapped on measured pairs,
+    :func:`.noise.snap_to_measured`, and refined keyframes at their own spp, :func:`.noise.level_k_factors`). The frozen launch adds its name and estimator version: its frames are
+    other Monte Carlo estimates than the film's, and no folder mixes frames of two estimators; and
+    ``static_reuse`` (:data:`.reuse.REUSE_VERSION`) where it reuses a static frame (:func:`.reuse.reuse_obstacle`). The film launch
     adds ``mesh_normals`` (:data:`FILM_MESH_NORMALS`) for a scene with a moving mesh that carries its own
     normals (a cube, a mesh file with normals: :func:`.builder.carries_normals`), whose frames depend on how
     the vertex rewrites move those normals; nothing otherwise.
@@ -175,10 +176,13 @@ def settings_of(scene, variant: str, launch: str = "film") -> dict:
         raise ValueError("settings_of takes the launch a render takes (launch.resolve_launch), not 'auto'")
     auto = scene.render.get("spp") == "auto"
     out = {"variant": variant, "variant_family": backend.variant_family(variant), "frames_format": 2,
-           "procedure": 3 if auto else 2}
+           "procedure": 4 if auto else 2}
     if launch != "film":
         out["launch"] = launch
         out["launch_estimator"] = _frozen.ESTIMATOR_VERSION
+        from .reuse import REUSE_VERSION, reuse_obstacle
+        if reuse_obstacle(scene, launch) is None:
+            out["static_reuse"] = REUSE_VERSION
     elif any(carries_normals(scene, obj) for _, obj, _ in moving_meshes(scene)):
         out["mesh_normals"] = FILM_MESH_NORMALS
     return out

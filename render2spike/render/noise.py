@@ -85,6 +85,61 @@ def keyframes_per_window(window_intervals: int, interval_s: float, keyframe_rate
     return max(1.0, float(window_intervals) * float(interval_s) * float(keyframe_rate_hz))
 
 
+#: window positions averaged over by :func:`level_k_factors` (evenly spread over one base spacing)
+LEVEL_OFFSETS = 16
+
+
+def _hat_weights(times, t0: float, length: float, n_grid: int) -> np.ndarray:
+    """Each keyframe's weight in the mean over ``[t0, t0 + length]`` of the linear interpolation between
+    keyframes at ``times`` (sorted): the mean of its hat function over the window (midpoint rule)."""
+    t = t0 + (np.arange(n_grid) + 0.5) * (length / n_grid)
+    j = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    u = (t - times[j]) / (times[j + 1] - times[j])
+    w = np.zeros(len(times))
+    np.add.at(w, j, 1.0 - u)
+    np.add.at(w, j + 1, u)
+    return w / n_grid
+
+
+def level_k_factors(window_intervals: int, interval_s: float, base_rate_hz: float, levels: int) -> list[float]:
+    """How much more variance a keyframe of each refinement level may have than a base keyframe, window for window.
+
+    The sensor integrates the rate interpolated linearly between keyframes, so a window of ``W`` intervals
+    averages the keyframes' independent render errors with weights ``w_i`` (the mean of each keyframe's hat
+    function over the window): its variance is ``sum w_i^2 v_i``. A base keyframe gets the variance that
+    meets the target with base keyframes alone; a keyframe of level ``l`` (which halves a level ``l - 1``
+    segment) gets ``a_l`` times that, chosen so that a window refined to level ``l`` everywhere has the same
+    variance as a base-only one: ``a_l = (S_0 - sum_(j<l) a_j S_j) / S_l``, with ``S_j`` the mean over window
+    positions (:data:`LEVEL_OFFSETS` over one base spacing) of ``sum w_i^2`` over the level-``j`` keyframes of
+    the refined grid. For windows of many keyframes (``K_l = W T_r f 2^l``) this tends to
+    ``(K_l + K_(l-1)) / K_0``: 3 for level 1, 6 for level 2, 12 for level 3. -> ``[1, a_1, ..., a_levels]``,
+    each at least 1; a level's ``K`` to budget with is ``K_0 a_l`` (:func:`choose_spp_fit`)."""
+    h0 = 1.0 / float(base_rate_hz)
+    length = float(window_intervals) * float(interval_s)
+    n_base = int(math.ceil(length / h0)) + 4
+    out = [1.0]
+    for top in range(1, levels + 1):
+        step = 2 ** top
+        times = (np.arange(n_base * step + 1) / step - 2.0) * h0  # from two base spacings before the window
+        idx = np.arange(times.size)
+        lvl = np.where(idx % step == 0, 0, top - (np.log2((idx & -idx) % step + (idx % step == 0)).astype(int)))
+        n_grid = max(2048, 64 * int(math.ceil(length / (h0 / step))))
+        s = np.zeros(top + 1)
+        s_base = 0.0
+        for k in range(LEVEL_OFFSETS):
+            t0 = h0 * k / LEVEL_OFFSETS
+            w2 = _hat_weights(times, t0, length, n_grid) ** 2
+            s += np.bincount(lvl, weights=w2, minlength=top + 1)[:top + 1]
+            if top == 1:
+                s_base += float((_hat_weights(times[::step], t0, length, n_grid) ** 2).sum())
+        if top == 1:
+            var0 = s_base / LEVEL_OFFSETS
+        s /= LEVEL_OFFSETS
+        rest = var0 - sum(out[j] * s[j] for j in range(top))
+        out.append(max(1.0, float(rest / s[top])) if s[top] > 0 else 1.0)
+    return out
+
+
 def dark_current_mean_e(profile) -> float:
     """A profile's mean dark current as a charge [e-/interval] (0 with dark events): shot noise that the render
     noise is held against beside the light's (``d`` above)."""
@@ -93,10 +148,13 @@ def dark_current_mean_e(profile) -> float:
 
 def render_noise_ratio(rate_e, rate_var, window_intervals: int, k_frames: float = 1.0, dark_e: float = 0.0) -> float:
     """``sqrt(W mean(v) / (K mean(r + d)))`` for rate_e [e-/interval], its MC variance and the dark current
-    ``dark_e`` [e-/interval]; nan if dark or unknown."""
+    ``dark_e`` [e-/interval]; nan if dark or unknown. ``k_frames`` may be an array of the rate's shape (the
+    keyframes each pixel's error averages over): then ``sqrt(W mean(v / K) / mean(r + d))``."""
     r = float(np.mean(rate_e)) + float(dark_e)
     if not r > 0 or rate_var is None:
         return float("nan")
+    if np.ndim(k_frames):  # per pixel (static-region reuse: K = 1 where a pixel reuses the static frame)
+        return float(math.sqrt(window_intervals * float(np.mean(np.asarray(rate_var) / k_frames)) / r))
     return float(math.sqrt(window_intervals * float(np.mean(rate_var)) / (k_frames * r)))
 
 
@@ -287,7 +345,7 @@ def snap_to_measured(spp: int, measure, ratio_of, target_ratio: float, min_spp: 
 
 
 def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale: float, snap: bool = True,
-                 dark_e: float = 0.0):
+                 dark_e: float = 0.0, mask=None, keep: dict | None = None, level_factors=(1.0,)):
     """Pilot renders at t = 0 -> (budget dict, per-pixel variance function ``v_px(spp)`` in Phi units^2).
 
     ``rnd`` is a :class:`~.renderer.SceneRenderer`. Levels ``n1 = pilot_spp``, ``4 n1`` and, if the
@@ -295,7 +353,13 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     independent pair of renders with seeds derived from the scene seed. ``snap``: check the answer on
     the sampler's own counts (:func:`snap_to_measured`); off when the spp is fixed by the user (the
     budget is then only a record, and the snapping's pairs would be spent for nothing). ``dark_e``: the
-    profile's mean dark current [e-/interval], added to the light in the shot noise (``r + d``).
+    profile's mean dark current [e-/interval], added to the light in the shot noise (``r + d``). ``mask``
+    (bool (H, W)): the means are taken over these pixels only (the dynamic region of :mod:`.reuse`); ``keep``:
+    a dict that receives the pilot pairs, ``{spp: (Phi a, Phi b)}``. ``level_factors``
+    (:func:`level_k_factors`): the budget's ``spp_levels`` holds the spp of each refinement level, the base
+    one (``spp``) first; a refined level's is solved on the measured levels with ``K`` times its factor (not
+    snapped: no pairs are spent on it), and ``level_var`` the variance of each level's keyframe over the
+    base one's.
     """
     from .photometry import to_physical
     rcfg = scene.render
@@ -306,7 +370,8 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     # SeedSequence's state do not depend on how many are drawn, so the levels' seeds do not depend on SNAP_STEPS
     seeds = np.random.SeedSequence([int(rcfg["seed"]), 0x9110]).generate_state(2 * (5 + 2 * SNAP_STEPS),
                                                                                 dtype=np.uint32)
-    pil, levels, var_means = {}, [], []
+    pil, levels, var_means = ({} if keep is None else keep), [], []
+    sel = slice(None) if mask is None else np.asarray(mask, bool)
 
     def level(j, n):
         if n in pil:
@@ -317,14 +382,14 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
             pair.append(to_physical(raw_p, raw_e, rnd.k, rnd.f_number, rnd.transmission, rnd.cos4)[0])
         pil[n] = pair
         levels.append(n)
-        var_means.append(float(pair_variance(*pair).mean()) * rate_scale ** 2)
+        var_means.append(float(pair_variance(*pair)[sel].mean()) * rate_scale ** 2)
         return var_means[-1]
 
     args = (window_intervals, k_frames, float(ncfg["target_ratio"]), int(ncfg["min_spp"]), int(ncfg["max_spp"]),
             exact)
     level(0, n1)
     level(1, exact(4 * n1))
-    rate = lambda: 0.5 * (pil[levels[-1]][0] + pil[levels[-1]][1]) * rate_scale + dark_e  # noqa: E731
+    rate = lambda: (0.5 * (pil[levels[-1]][0] + pil[levels[-1]][1]) * rate_scale + dark_e)[sel]  # noqa: E731
     budget = choose_spp_fit(rate(), fit_convergence(levels, var_means), *args)
     if budget["spp_needed"] > levels[-1]:  # extrapolating: measure one level further out
         level(2, exact(16 * n1))
@@ -346,6 +411,17 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
                                      float(ncfg["target_ratio"]), int(ncfg["min_spp"]), int(ncfg["max_spp"]), exact)
         budget.update(spp=int(spp), predicted_ratio=seen[spp], model_spp=int(model_spp),
                       snapped={str(n): seen[n] for n in sorted(seen)})
+    spp_levels = [int(budget["spp"])]
+    v0 = model(spp_levels[0])
+    for a in level_factors[1:]:
+        # the variance the base keyframes reached (the target's, or max_spp's when clipped) times the level's
+        # factor: every window, refined or not, then has the base-only window's ratio
+        n = max(1, int(math.ceil(model.solve(v0 * float(a)) - 1e-9))) if v0 > 0 else spp_levels[-1]
+        n = exact(int(min(max(n, int(ncfg["min_spp"])), spp_levels[-1])))
+        spp_levels.append(int(min(n, spp_levels[-1])))  # never more than the level above
+    budget["spp_levels"] = spp_levels
+    budget["level_var"] = [float(model(n) / v0) if v0 > 0 else 1.0 for n in spp_levels]
+    budget["level_k_factors"] = [float(a) for a in level_factors]
     budget["model"] = {"form": "power laws between the measured pilot levels", "fit_A_over_n_B_over_n2":
                        fitted["model"], "alpha_at_pilot": model.alpha_local}
     budget["fit_candidate_spp"] = fitted["spp"]

@@ -32,6 +32,7 @@ from .builder import SAMPLER, SENSOR_KEY, build_dict, carries_normals, moving_me
 from .launch import DEFAULT_LAUNCH, LAUNCH_TYPES, check_launch, resolve_launch
 from .photometry import (apply_factors, cos4_map, direct_raw_e, emitter_scale, physical_factors,
                          warn_if_reference_shadowed)
+from .sampling import frame_seeds
 from .scene import Scene, spectrum_curve
 
 
@@ -110,12 +111,6 @@ def _mesh_local_frame(params, key: str, m0: np.ndarray, carry: bool) -> tuple[np
     if len(n) != len(v) or len(n) == 0:
         return local, None
     return local, n @ m0[:3, :3]  # (A0^T n^T)^T: undoes the load's A0^-T (up to each normal's length)
-
-
-def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
-    """``n`` 32-bit render seeds for the frame at ``t_s`` [s], derived from the base seed and the time in ns."""
-    ss = np.random.SeedSequence([int(base_seed), int(round(float(t_s) * 1e9)) & 0xFFFFFFFFFFFF])
-    return [int(s) for s in ss.generate_state(n, dtype=np.uint32)]
 
 
 class SceneRenderer:
@@ -315,8 +310,29 @@ class SceneRenderer:
             cache[spp] = int(s.sample_count())
         return cache[spp]
 
-    def launch_counts(self, spp: int) -> list[int]:
-        """Sample counts of the launches that together take exactly ``spp`` samples per pixel.
+    def render_pixels(self, t_s: float, seeds, spp: int, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raw channels (Phi_raw, E_raw), float64 (n,), of the pixels ``pixels`` (flat indices) at ``t_s`` with
+        exactly ``spp`` samples each (:meth:`launch_counts` for that many pixels, one seed a launch); the frozen
+        launch only (:meth:`.frozen.FrozenLaunch.launch_pixels`)."""
+        pixels = np.asarray(pixels, np.int64).ravel()
+        from .frozen import PIXEL_BUCKET
+        counts = self.launch_counts(spp, n_pixels=-(-max(1, pixels.size) // PIXEL_BUCKET) * PIXEL_BUCKET)
+        self.set_time(t_s)
+        fl = self.frame_launch
+        launched = []
+        for n, s in zip(counts, seeds):
+            self.n_launches += 1
+            launched.append((n, fl.launch_pixels(int(s), n, self._cam_m, pixels)))
+        acc_p = acc_e = 0.0
+        for n, lh in launched:
+            v = fl.pixel_values(lh)
+            acc_p = acc_p + v["Phi"] * n
+            acc_e = acc_e + v["E"] * n
+        return np.asarray(acc_p, np.float64) / spp, np.asarray(acc_e, np.float64) / spp
+
+    def launch_counts(self, spp: int, n_pixels: int | None = None) -> list[int]:
+        """Sample counts of the launches that together take exactly ``spp`` samples per pixel (of ``n_pixels``
+        pixels a launch; default: the whole frame).
 
         One launch when the sampler takes ``spp`` exactly (always so for the noise budget's
         choice); otherwise the largest exact counts first (e.g. 17 -> [16, 1]). Where the launch takes at
@@ -328,19 +344,20 @@ class SceneRenderer:
         from .noise import exact_below
         cache = self.__dict__.setdefault("_launch_cache", {})
         spp = max(1, int(spp))
-        if spp not in cache:
+        n_pix = self.scene.profile.height * self.scene.profile.width if n_pixels is None else int(n_pixels)
+        if (spp, n_pix) not in cache:
             part = spp
             most = self.frame_launch.max_samples()
             if most is not None:
-                cap = max(1, most // (self.scene.profile.height * self.scene.profile.width))
+                cap = max(1, most // n_pix)
                 part = -(-spp // -(-spp // cap))  # ceil(spp / k), k = ceil(spp / cap) parts
             out, left = [], spp
             while left > 0:
                 n = exact_below(self.effective_spp, min(left, part))
                 out.append(n)
                 left -= n
-            cache[spp] = out
-        return cache[spp]
+            cache[(spp, n_pix)] = out
+        return cache[(spp, n_pix)]
 
     def _launch_exact(self, t_s: float, seeds, spp: int) -> list:
         return [(n, self.launch(t_s, s, n)) for n, s in zip(self.launch_counts(spp), seeds)]

@@ -74,6 +74,12 @@ class TimeGrid:
         return [i * self.step for i in range(self.n_base + 1)]
 
 
+def frame_seeds(base_seed: int, t_s: float, n: int = 2) -> list[int]:
+    """``n`` 32-bit render seeds for the frame at ``t_s`` [s], derived from the base seed and the time in ns."""
+    ss = np.random.SeedSequence([int(base_seed), int(round(float(t_s) * 1e9)) & 0xFFFFFFFFFFFF])
+    return [int(s) for s in ss.generate_state(n, dtype=np.uint32)]
+
+
 def change_metric(a, b, var_a=None, var_b=None, z: float = 4.0) -> float:
     """d(A, B): largest per-pixel change beyond z MC sigmas, relative to the mean of the pair."""
     a = np.asarray(a, np.float64)
@@ -92,20 +98,22 @@ def interpolation_metric(var_floor, rate_scale: float, window_intervals: int, in
 
     ``var_floor``: per-pixel Monte Carlo variance of one keyframe [Phi units^2] (scalar or (H, W));
     ``rate_scale``: e-/interval per unit Phi; ``window_intervals``: the sensor window W;
-    ``f2=None``: only two frames (f0, f1), the endpoint bound is used.
+    ``f2=None``: only two frames (f0, f1), the endpoint bound is used. ``scales``: each frame's variance over
+    ``var_floor`` (a refined keyframe may have fewer samples: :func:`.noise.level_k_factors`).
     """
     W = float(window_intervals)
     sd = np.sqrt(np.asarray(var_floor, np.float64)) * float(rate_scale)
 
-    def metric(f0, f1, f2, spacing_s: float) -> float:
+    def metric(f0, f1, f2, spacing_s: float, scales=(1.0, 1.0, 1.0)) -> float:
         a = np.asarray(f0, np.float64) * rate_scale
         b = np.asarray(f1, np.float64) * rate_scale
+        s0, s1, s2 = (float(x) for x in scales)
         if f2 is None:
-            e = np.maximum(0.0, np.abs(b - a) - z * np.sqrt(2.0) * sd) / 2.0
+            e = np.maximum(0.0, np.abs(b - a) - z * np.sqrt(s0 + s1) * sd) / 2.0
             r = 0.5 * (a + b)
         else:
             c = np.asarray(f2, np.float64) * rate_scale
-            e = np.maximum(0.0, np.abs(a - 2.0 * b + c) - z * np.sqrt(6.0) * sd) / 4.0
+            e = np.maximum(0.0, np.abs(a - 2.0 * b + c) - z * np.sqrt(s0 + 4.0 * s1 + s2) * sd) / 4.0
             r = (a + b + c) / 3.0
         seg = min(W, float(spacing_s) / float(interval_s))
         err = (2.0 / 3.0) * e * seg
@@ -113,14 +121,30 @@ def interpolation_metric(var_floor, rate_scale: float, window_intervals: int, in
     return metric
 
 
-def adaptive_ticks(grid: TimeGrid, get_frame, metric, tolerance: float, on_new=None, adaptive: bool = True):
+def tick_level(grid: TimeGrid, tick: int) -> int:
+    """The refinement level of ``tick``: 0 on the base grid, ``l`` where it halves a level ``l - 1`` segment."""
+    tick = int(tick)
+    if tick % grid.step == 0:
+        return 0
+    return grid.levels - ((tick & -tick).bit_length() - 1)
+
+
+def adaptive_ticks(grid: TimeGrid, get_frame, metric, tolerance: float, on_new=None, adaptive: bool = True,
+                   var_scale=None):
     """Walk the grid, calling ``get_frame(tick)`` for every keyframe needed; return the sorted ticks.
 
     ``metric(f0, f1, f2, spacing_s)`` estimates the interpolation error next to three equally
     spaced frames (``f2=None``: two frames); segments with ``metric > tolerance`` are halved
     down to one tick. Base frames are rendered one ahead (a segment's decision needs the base
     frame after it). ``on_new(n)`` is told each time n more frames are scheduled (progress bars).
+    ``var_scale(level)``: the Monte Carlo variance of a keyframe of that refinement level over a base one's,
+    handed to the metric (``scales``) when a refined keyframe is among its frames.
     """
+    def scales(*ticks):
+        if var_scale is None:
+            return (1.0, 1.0, 1.0)
+        return tuple(float(var_scale(tick_level(grid, t))) for t in ticks) + (1.0,) * (3 - len(ticks))
+
     base = grid.base_ticks()
     nb = len(base)
     h = grid.time(grid.step) - grid.time(0)
@@ -153,7 +177,7 @@ def adaptive_ticks(grid: TimeGrid, get_frame, metric, tolerance: float, on_new=N
                     on_new(1)
                 f_m = get_frame(m)
                 ticks.append(m)
-                dc = metric(f_a, f_m, f_b, 0.5 * (grid.time(b) - grid.time(a)))
+                dc = metric(f_a, f_m, f_b, 0.5 * (grid.time(b) - grid.time(a)), scales(a, m, b))
                 # the later half first on the stack, so the earlier half is refined first (time order)
                 stack.append((m, f_m, b, f_b, dc))
                 stack.append((a, f_a, m, f_m, dc))

@@ -323,8 +323,12 @@ class Scene:
         return float(self.data["illuminance_lux"])
 
     def file(self, name: str, field_name: str) -> Path:
+        """A file the scene refers to: an absolute path, else one beside the scene file, else a bundled one
+        (``scenes/``, e.g. the meshes ``mesh_torus.ply`` that generated scenes place)."""
         p = Path(name)
-        p = p if p.is_absolute() else self.folder / p
+        if not p.is_absolute():
+            p = self.folder / p if (self.folder / p).is_file() or not (Path(SCENES_DIR) / p).is_file() \
+                else Path(SCENES_DIR) / p
         if not p.is_file():
             raise InputError(f"referenced file does not exist: {p}", path=self.path, field=field_name)
         return p
@@ -368,16 +372,26 @@ def load_scene(scene, sets=None, *, lux: float | None = None, duration_s: float 
 
     Parameters
     ----------
-    scene : path or bundled name
+    scene : path or bundled name, or a scene mapping made in code (:func:`render2spike.scenegen.generate_scene`;
+        its files are looked up among the bundled ones)
     sets : list of "key=value" overrides (see :func:`apply_overrides`)
     lux, duration_s, profile : shortcuts for ``illuminance_lux``, ``duration_s``, ``camera.profile``.
     cache : a dict kept by a caller that loads many variants of the same files (a dataset's plan): each
         file is parsed and each sensor profile loaded once. The returned scenes share those profiles.
     """
-    path = resolve_scene_path(scene)
-    key = ("scene-file", str(path))
+    if isinstance(scene, dict):  # a scene mapping made in code (render2spike.scenegen): no file behind it
+        text = json.dumps(scene, sort_keys=True, default=str)
+        path = Path(SCENES_DIR) / f"{scene.get('name', 'scene')}.generated"  # bundled files are found beside it
+        key = ("scene-data", hashlib.sha256(text.encode()).hexdigest())
+        raw = json.loads(text)
+        if cache is not None:
+            raw = cache.setdefault(key, raw)
+    else:
+        path = resolve_scene_path(scene)
+        key = ("scene-file", str(path))
     try:
-        raw = cache[key] if cache is not None and key in cache else _yaml().safe_load(path.read_text())
+        raw = raw if isinstance(scene, dict) else \
+            cache[key] if cache is not None and key in cache else _yaml().safe_load(path.read_text())
     except Exception as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

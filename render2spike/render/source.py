@@ -9,17 +9,18 @@ needs them, and returns the ticks of the finished clip.
 
 from __future__ import annotations
 
-from .sampling import TimeGrid, adaptive_ticks, interpolation_metric
+from .sampling import TimeGrid, adaptive_ticks, interpolation_metric, tick_level
 
 
 class FrameSource:
     """The keyframe ticks of a render of ``scene``, and its progress bar (``progress``).
 
     ``var_floor``: the per-pixel Monte Carlo variance of one keyframe at the render's spp [Phi units^2],
-    below which a change between keyframes is render noise; ``rate_scale``: e-/interval per unit Phi.
+    below which a change between keyframes is render noise; ``rate_scale``: e-/interval per unit Phi;
+    ``level_var``: each refinement level's keyframe variance over a base keyframe's (None: all equal).
     """
 
-    def __init__(self, scene, var_floor, rate_scale: float, progress: bool = True):
+    def __init__(self, scene, var_floor, rate_scale: float, progress: bool = True, level_var=None):
         rcfg = scene.render
         acfg = rcfg["adaptive"]
         self.base_rate_hz = float(rcfg["keyframe_rate_hz"])
@@ -29,6 +30,7 @@ class FrameSource:
         self.grid = TimeGrid.make(scene.duration_s, self.base_rate_hz, self.max_rate_hz)
         self.metric = interpolation_metric(var_floor, rate_scale, int(rcfg["noise"]["window_intervals"]),
                                            scene.profile.interval_s, z=4.0)
+        self.level_var = list(level_var) if level_var else None  # each refinement level's variance / the base's
         self._bar = _progress_bar(scene, progress)
         self._dur_ms = scene.duration_s * 1e3
         self._seen = {"tick": 0, "frames": 0, "refined": 0}
@@ -47,8 +49,13 @@ class FrameSource:
         def refined(n: int) -> None:
             self._seen["refined"] += n
 
+        lv = self.level_var
         return adaptive_ticks(self.grid, counted, self.metric, self.tolerance, on_new=refined,
-                              adaptive=self.adaptive)
+                              adaptive=self.adaptive, var_scale=(lambda level: lv[level]) if lv else None)
+
+    def level(self, tick: int) -> int:
+        """The refinement level of ``tick`` (0: a base keyframe)."""
+        return tick_level(self.grid, tick)
 
     def _advance(self, tick: int) -> None:
         # progress in camera time [ms]: the furthest keyframe time asked for so far (base keyframes are rendered

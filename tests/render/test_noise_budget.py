@@ -209,3 +209,43 @@ def test_the_dark_current_counts_as_shot_noise():
     prof = sensor.SensorProfile.load("vidar-default")
     assert dark_current_mean_e(prof) == pytest.approx(float(prof.dark_current_e.mean()), rel=1e-6)
     assert dark_current_mean_e(sensor.SensorProfile.load("vidar-events")) == 0.0
+
+
+def _window_variance(times, variances, t0, length, n_grid=4000):
+    """Variance of the mean over [t0, t0 + length] of the linear interpolation between keyframes at ``times``
+    whose independent errors have ``variances``: sum over keyframes of (its hat function's mean)^2 x variance."""
+    import numpy as np
+    t = np.linspace(t0, t0 + length, n_grid)
+    w = np.array([np.interp(t, times, np.eye(len(times))[i]).mean() for i in range(len(times))])
+    return float((w ** 2 * np.asarray(variances)).sum())
+
+
+def test_refined_keyframes_may_be_noisier_by_the_factor_that_keeps_the_window_on_target():
+    """level_k_factors' answer, checked on the window's own variance, computed here another way (np.interp of
+    each keyframe's unit vector, other window positions): a window of K0 = 4 base spacings refined once or twice,
+    the refined keyframes at the factors' variance, has the base-only window's variance within 2 %; so do K0 = 16
+    and a window shorter than the base spacing (K0 = 0.32). The factors tend to 3 and 6 for long windows."""
+    import numpy as np
+
+    from render2spike.render.noise import level_k_factors
+    for w_int, rate, n_base in ((80, 1000.0, 41), (320, 1000.0, 81), (64, 100.0, 41)):
+        f = level_k_factors(w_int, 50e-6, rate, 2)
+        length = w_int * 50e-6 * rate  # the window in base spacings
+        base = np.arange(n_base) * 1.0
+        one = np.arange(2 * n_base - 1) * 0.5
+        two = np.arange(4 * n_base - 3) * 0.25
+        i1, i2 = np.arange(one.size), np.arange(two.size)
+        v1 = np.where(i1 % 2 == 0, 1.0, f[1])
+        v2 = np.where(i2 % 4 == 0, 1.0, np.where(i2 % 2 == 0, f[1], f[2]))
+        starts = 10.0 + np.arange(11) / 11.0
+        ref = np.mean([_window_variance(base, np.ones(n_base), s, length) for s in starts])
+        for times, v in ((one, v1), (two, v2)):
+            got = np.mean([_window_variance(times, v, s, length) for s in starts])
+            assert got == pytest.approx(ref, rel=0.02), (w_int, rate, f)
+    assert level_k_factors(64 * 64, 50e-6, 1000.0, 2) == pytest.approx([1.0, 3.0, 6.0], rel=0.02)
+
+
+def test_tick_levels_on_the_dyadic_grid():
+    from render2spike.render.sampling import TimeGrid, tick_level
+    g = TimeGrid.make(0.01, 1000.0, 8000.0)  # 3 levels, 8 ticks a base interval
+    assert [tick_level(g, t) for t in range(0, 17)] == [0, 3, 2, 3, 1, 3, 2, 3, 0, 3, 2, 3, 1, 3, 2, 3, 0]

@@ -1,0 +1,109 @@
+"""Static-region reuse: render time and render noise with and without it, in one run.
+
+One command::
+
+    python benchmarks/static_reuse.py                    # rotating_disk (the README's main job) and translating_object
+    python benchmarks/static_reuse.py --duration-s 0.1   # the main job's full clip
+    python benchmarks/static_reuse.py --out DIR          # the report elsewhere (default benchmarks/results)
+
+writes ``static_reuse.md`` and ``static_reuse.json`` in ``--out`` (overwritten: one current table).
+
+For each scene it renders the same clip twice in this process, first with ``render.static_reuse: false``
+(every keyframe rendered whole), then with reuse (the default: :mod:`render2spike.render.reuse`), each into
+a fresh folder, and reads each render's ``frames.json``: the keyframes stage's seconds (every keyframe
+rendered, checked and written; the static frame and the pilot are in the pilot stage), the spp, the
+dynamic fraction of the frame, the static frame's spp, and the render-noise ratio the budget measures on
+its verified keyframes (:mod:`render2spike.render.noise`: ``sqrt(W mean(v_eff) / mean(r + d))``, with
+``v_eff = v / K`` for a pixel rendered in every keyframe and ``v`` for a static one), and, with reuse, the
+static check (the static pixels of a whole-frame render against the static frame: about 1 when nothing
+changed there). Samples per keyframe: spp x pixels rendered (the dynamic fraction with reuse). The load
+average is recorded before and after; the ratio of the two runs' times is the figure, not either time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SCENES = ("rotating_disk", "translating_object")
+
+
+def one(scene_name: str, reuse: bool, duration_s: float, root: Path) -> dict:
+    from render2spike.render.job import render_scene
+    from render2spike.render.scene import load_scene
+    sets = [] if reuse else ["render.static_reuse=false"]
+    scene = load_scene(scene_name, sets, duration_s=duration_s)
+    out = root / f"{scene_name}-{'reuse' if reuse else 'whole'}"
+    t0 = time.perf_counter()
+    res = render_scene(scene, out, progress=False, log=lambda *a: None)
+    wall = time.perf_counter() - t0
+    m = res.manifest
+    st = m["render_stage_seconds"]
+    sr = m.get("static_reuse", {})
+    n_px = scene.profile.height * scene.profile.width
+    frac = (sr.get("dynamic_fraction") or {}).get("mean") if sr.get("applied") else 1.0
+    return {"scene": scene_name, "reuse": bool(sr.get("applied")), "wall_s": wall, "stages_s": st,
+            "frames": m["n_rendered_this_run"], "spp": m["spp"], "size": [scene.profile.height, scene.profile.width],
+            "dynamic_fraction": frac, "samples_per_keyframe": frac * n_px * m["spp"],
+            "static_spp": sr.get("static_spp"), "static_check": sr.get("static_check"),
+            "ratio": m["render_noise_ratio"].get("verified_mean"), "budget": {
+                k: m["noise_budget"].get(k) for k in ("spp_needed", "predicted_ratio", "clipped", "static")}}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration-s", type=float, default=0.05, help="camera time of each clip [s] (default 0.05)")
+    ap.add_argument("--scenes", default=",".join(SCENES), help="bundled scenes, comma-separated")
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    a = ap.parse_args(argv)
+    from benchmarks.tables import machine
+    load0 = os.getloadavg()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="r2s-reuse-") as tmp:
+        for name in a.scenes.split(","):
+            for reuse in (False, True):
+                rows.append(one(name, reuse, a.duration_s, Path(tmp)))
+                print(json.dumps({k: rows[-1][k] for k in ("scene", "reuse", "wall_s", "ratio")}), flush=True)
+    load1 = os.getloadavg()
+    rec = {"machine": machine(), "load_before": load0, "load_after": load1, "duration_s": a.duration_s,
+           "rows": rows}
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "static_reuse.json").write_text(json.dumps(rec, indent=1, default=str))
+    lines = ["# Static-region reuse: keyframe time and render noise, whole frames against reuse", "",
+             f"Machine: {rec['machine']['cpu']}, {rec['machine']['cores']} cores; load average "
+             f"{load0[0]:.1f} before, {load1[0]:.1f} after. Clips of {a.duration_s:g} s, the scenes' own noise "
+             "budget. `python benchmarks/static_reuse.py`.", "",
+             "| scene | reuse | keyframes | spp (dynamic) | dynamic fraction | samples / keyframe | static spp | "
+             "keyframes stage [s] | pilot + static frame [s] | ratio (verified) | static check z2 / limit |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        chk = "; ".join(f"{c['z2_mean']:.2f} / {c['limit']:.2f}" for c in (r["static_check"] or [])
+                        if c.get("z2_mean") is not None) or "-"
+        lines.append(f"| {r['scene']} | {'yes' if r['reuse'] else 'no'} | {r['frames']} | {r['spp']} | "
+                     f"{r['dynamic_fraction']:.3f} | {r['samples_per_keyframe']:,.0f} | {r['static_spp'] or '-'} | "
+                     f"{r['stages_s']['keyframes']:.1f} | {r['stages_s']['pilot']:.1f} | "
+                     f"{r['ratio'] if r['ratio'] is None else round(r['ratio'], 3)} | {chk} |")
+    lines.append("")
+    for name in a.scenes.split(","):
+        w = next((r for r in rows if r["scene"] == name and not r["reuse"]), None)
+        u = next((r for r in rows if r["scene"] == name and r["reuse"]), None)
+        if w and u:
+            lines.append(f"- {name}: keyframes stage {u['stages_s']['keyframes'] / w['stages_s']['keyframes']:.2f}x "
+                         f"the whole-frame time, samples per keyframe "
+                         f"{u['samples_per_keyframe'] / w['samples_per_keyframe']:.2f}x; whole render "
+                         f"{u['wall_s'] / w['wall_s']:.2f}x.")
+    (a.out / "static_reuse.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

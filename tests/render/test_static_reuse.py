@@ -1,0 +1,158 @@
+"""Static-region reuse (render2spike.render.reuse): where it applies, the coverage test, the pixel-list launch,
+and a render job whose frames reuse one static frame."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.ndimage import uniform_filter
+
+from tests.render.conftest import BASE, needs_mitsuba
+
+pytestmark = [needs_mitsuba, pytest.mark.render]
+
+#: a cube sliding over a plane under a slanted sun: it moves, and so does its shadow
+MOVER = {"name": "box", "shape": "cube", "size": [0.02, 0.02, 0.02], "position": [-0.02, 0, 0.02],
+         "material": {"reflectance": 0.8},
+         "motion": {"parametric": [{"translate": {"velocity_m_s": [4.0, 0, 0]}, "start_s": 0.0}]}}
+SUN = [{"name": "sun", "type": "directional", "direction": [-0.6, 0, -1], "strength": 1.0,
+        "spectrum": {"blackbody_k": 5000}}]
+
+
+def _scene(write_scene, **changes):
+    from render2spike.render.scene import load_scene
+    d = {"objects": BASE["objects"] + [MOVER], "lights": SUN}
+    d.update(changes)
+    return load_scene(write_scene(d))
+
+
+def test_reuse_applies_only_to_a_still_camera_with_movers_on_the_frozen_launch(write_scene):
+    from render2spike.render.reuse import reuse_obstacle
+    moving = _scene(write_scene)
+    assert reuse_obstacle(moving, "frozen") is None
+    assert "film launch" in reuse_obstacle(moving, "film")
+    still = _scene(write_scene, objects=BASE["objects"])
+    assert reuse_obstacle(still, "frozen") == "nothing moves"
+    cam = dict(BASE["camera"], motion={"parametric": [{"translate": {"velocity_m_s": [0.1, 0, 0]}}]})
+    assert "camera moves" in reuse_obstacle(_scene(write_scene, camera=cam), "frozen")
+    off = _scene(write_scene, render=dict(BASE["render"], static_reuse=False))
+    assert "static_reuse is false" in reuse_obstacle(off, "frozen")
+    glow = dict(MOVER, emitter={"strength": 1.0})
+    assert "emits light" in reuse_obstacle(_scene(write_scene, objects=BASE["objects"] + [glow]), "frozen")
+
+
+def test_the_frames_hash_says_whether_a_static_frame_is_reused(write_scene):
+    from render2spike.render.launch import settings_of
+    assert settings_of(_scene(write_scene), "llvm_ad_spectral", "frozen").get("static_reuse") == 1
+    off = _scene(write_scene, render=dict(BASE["render"], static_reuse=False))
+    assert "static_reuse" not in settings_of(off, "llvm_ad_spectral", "frozen")
+
+
+def test_everything_that_changes_between_two_times_is_inside_the_coverage(write_scene):
+    """Pixels whose irradiance changes between t0 and t1 by more than 5 sigma (the cube, and its shadow on the
+    plane) must all be dynamic at t0 or t1; the far plane must be static. Without the shadow rays the shadow's
+    pixels would be outside the coverage and this fails."""
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.reuse import Coverage
+    r = SceneRenderer(_scene(write_scene), launch="frozen")
+    cov = Coverage(r)
+    t0, t1 = 0.0, 0.004
+    c0, c1 = cov(t0), cov(t1)
+    assert 0.01 < c0.mean() < 0.5 and not np.array_equal(c0, c1)
+    fa, fb = (r.render_frame(t, 1, 256, variance=True) for t in (t0, t1))
+    # the variance of the difference, each pixel's pair estimate (one degree of freedom) pooled over 5 x 5
+    z = (fa["phi"] - fb["phi"]) / np.sqrt(uniform_filter(fa["phi_var"] + fb["phi_var"], size=5, mode="nearest"))
+    assert (np.abs(z) > 5.5).sum() > 10  # the cube and its shadow did move
+    out = ~(c0 | c1)
+    # outside the coverage the difference is render noise: no pixel beyond 5.5 sigma (1e-4 expected of a normal
+    # over these ~1,300 pixels), and no systematic change (the mean z within 4.5 standard errors of 0)
+    assert not np.any(np.abs(z[out]) > 5.5), np.argwhere((np.abs(z) > 5.5) & out)[:5]
+    assert abs(z[out].mean()) < 4.5 / np.sqrt(out.sum()), z[out].mean()
+
+
+def test_a_pixel_list_launch_estimates_what_the_whole_frame_launch_does(write_scene):
+    """Same pixels, independent seeds: the image means agree within 4.5 standard errors, and the per-pixel
+    variances (pairs of renders) agree within the spread of a mean of n chi-square(1) ratios."""
+    from render2spike.render.renderer import SceneRenderer
+    r = SceneRenderer(_scene(write_scene), launch="frozen")
+    pix = np.flatnonzero(np.arange(32 * 48) % 3 == 0)
+    full = [r.render_exact(0.001, [s], 16)[0].ravel()[pix] for s in (3, 4)]
+    part = [r.render_pixels(0.001, [s], 16, pix)[0] for s in (5, 6)]
+    va = (full[0] - full[1]) ** 2 / 2
+    vb = (part[0] - part[1]) ** 2 / 2
+    n = pix.size
+    sd = np.sqrt((va.sum() + vb.sum()) / n ** 2)
+    z = (0.5 * (full[0] + full[1]).mean() - 0.5 * (part[0] + part[1]).mean()) / (sd / np.sqrt(2))
+    assert abs(z) < 4.5, z
+    # each mean of n (a-b)^2/2 is sigma^2 times a mean of n chi2(1): relative sd sqrt(2/n) each (heavy-tailed
+    # over pixels of unequal variance: allow 6 of them on the log ratio)
+    assert abs(np.log(va.mean() / vb.mean())) < 6 * np.sqrt(2 * 2.0 / n) * 2, (va.mean(), vb.mean())
+
+
+def test_a_render_reuses_one_static_frame_and_checks_it(tmp_path, write_scene):
+    from render2spike.render.job import render_scene
+    from sensor.io.frames import read_frames
+    scene = _scene(write_scene, duration_s=0.008, render=dict(BASE["render"], keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False}))
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    man = res.manifest
+    sr = man["static_reuse"]
+    assert sr["applied"] and 0.01 < sr["dynamic_fraction"]["mean"] < 0.6
+    assert sr["static_check"] and all(c["z2_mean"] < c["limit"] for c in sr["static_check"])
+    assert man["noise_budget"]["static"]["spp"] >= 1
+    seq = read_frames(tmp_path / "f")
+    phi = np.stack([seq.read_phi(i) for i in range(len(seq))])
+    same = np.all(phi == phi[:1], axis=0)  # pixels equal in every keyframe: the static frame's
+    assert 0.3 < same.mean() < 0.99
+    assert json.loads((tmp_path / "f" / "frames.json").read_text())["static_reuse"]["applied"]
+
+
+def test_the_ratio_with_a_per_pixel_k_is_the_scalar_one_when_k_is_uniform():
+    from render2spike.render.noise import render_noise_ratio
+    rng = np.random.default_rng(0)
+    r, v = rng.uniform(10, 20, (8, 8)), rng.uniform(0.1, 1, (8, 8))
+    a = render_noise_ratio(r, v, 64, 3.2, 5.0)
+    b = render_noise_ratio(r, v, 64, np.full((8, 8), 3.2), 5.0)
+    assert b == pytest.approx(a, rel=1e-12)
+    c = render_noise_ratio(r, v, 64, np.where(np.arange(64).reshape(8, 8) < 32, 3.2, 1.0), 5.0)
+    assert c > a  # static pixels carry their error into every keyframe: K = 1
+
+
+def test_refined_keyframes_are_rendered_at_their_levels_spp(tmp_path, write_scene):
+    """An unclipped budget with refinement: each level's spp is at most the level above's, a refined keyframe's
+    header carries its level's spp, and a base keyframe the base spp."""
+    from render2spike.render.job import render_scene
+    from render2spike.render.sampling import TimeGrid, tick_level
+    from sensor.io.frames import read_frames
+    render = dict(BASE["render"], keyframe_rate_hz=1000, noise={"target_ratio": 0.4},
+                  adaptive={"enabled": True, "tolerance": 0.02, "max_rate_hz": 4000})
+    scene = _scene(write_scene, duration_s=0.004, render=render)
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    man = res.manifest
+    levels = man["spp_by_level"]
+    assert len(levels) == 3 and not man["noise_budget"]["clipped"]
+    assert levels == sorted(levels, reverse=True) and levels[1] < levels[0]
+    assert man["temporal_sampling"]["n_refined"] > 0
+    grid = TimeGrid.make(scene.duration_s, 1000, 4000)
+    seq = read_frames(tmp_path / "f")
+    seen = set()
+    for i in range(len(seq)):
+        fr = seq.read(i)
+        tick = int(round(fr.time_s / scene.duration_s * grid.n_ticks))
+        lv = tick_level(grid, tick)
+        seen.add(lv)
+        assert int(fr.header["spp"]) == levels[lv], (tick, lv)
+    assert {0, 1} <= seen
+
+
+def test_a_mover_that_enters_the_view_later_is_budgeted_on_the_whole_frame(tmp_path, write_scene):
+    from render2spike.render.job import render_scene
+    late = dict(MOVER, position=[-0.2, 0, 0.02],
+                motion={"parametric": [{"translate": {"velocity_m_s": [40.0, 0, 0]}, "start_s": 0.0}]})
+    scene = _scene(write_scene, objects=BASE["objects"] + [late], duration_s=0.01,
+                   render=dict(BASE["render"], keyframe_rate_hz=400, adaptive={"enabled": False}))
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    sr = res.manifest["static_reuse"]
+    assert sr["applied"] and sr["dynamic_fraction"]["t0"] == 0.0 and sr["dynamic_fraction"]["max"] > 0.0
+    assert np.isfinite(res.manifest["noise_budget"]["predicted_ratio"]) and res.spp >= 1
+    assert all(c["z2_mean"] < c["limit"] for c in sr["static_check"])
