@@ -16,11 +16,15 @@
 #   7. with DATASET_T=seconds (0 or unset: skipped), benchmarks/dataset.py: camera-seconds of spikes plus truth per
 #      hour of its small default spec, where each clip's time goes, the render's samples/s against a bare launch,
 #      on the auto-selected variant (about a minute; report in OUT_DIR/dataset/dataset.md).
+#   8. with GOAL_T=seconds (0 or unset: skipped), the throughput goal's commands, each timed end to end in a fresh
+#      folder: render2spike run rotating_disk --set camera.profile=vidar-default --duration 0.2 at --lux 5 and 1
+#      (full 250 x 400 sensor; goal: <= 2 s and <= 0.8 s), then benchmarks/static_reuse.py --rounds 1
+#      (static-region reuse against whole frames) in what is left of GOAL_T.
 # REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
 # the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: auto
 # only, the README's command as it stands; its log is demo.txt, another launch's demo_LAUNCH.txt).
 # Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
-#        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] [DATASET_T=120] \
+#        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] [DATASET_T=120] [GOAL_T=120] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -105,6 +109,23 @@ stamp "dataset throughput (benchmarks/dataset.py, timeout ${DATASET_T} s)"
 timeout "$DATASET_T" python3 benchmarks/dataset.py --out "$OUT/dataset" > "$OUT/dataset.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "dataset benchmark exit $rc ($(grep -m1 -o '[0-9.e+]* camera-seconds[^*]*' "$OUT/dataset/dataset.md" 2>/dev/null))"
+}
+[ "${GOAL_T:-0}" -gt 0 ] && {
+TIMEFORMAT='wall %R s, user %U s, sys %S s'
+gt0=$(date +%s)
+for lux in 5 1; do
+  left=$(( GOAL_T - ($(date +%s) - gt0) ))
+  [ "$left" -gt 5 ] || { stamp "goal run at $lux lux: no time left"; break; }
+  stamp "goal: run rotating_disk, full sensor, 0.2 s, $lux lux (timeout $left s)"
+  g=$(mktemp -d)/goal
+  { time timeout "$left" python3 -m render2spike run rotating_disk --set camera.profile=vidar-default \
+      --duration 0.2 --lux "$lux" --out "$g" --quiet; echo "exit $?"; cat "$g/summary.md"; } > "$OUT/goal_${lux}lux.txt" 2>&1
+  grep -qx "exit 0" "$OUT/goal_${lux}lux.txt" || fail=1
+  stamp "goal at $lux lux: $(grep -E '^wall|^exit' "$OUT/goal_${lux}lux.txt" | tr '\n' ' ')"
+done
+left=$(( GOAL_T - ($(date +%s) - gt0) ))
+[ "$left" -gt 30 ] && { timeout "$left" python3 benchmarks/static_reuse.py --rounds 1 --out "$OUT/reuse" \
+  > "$OUT/reuse.txt" 2>&1; stamp "static reuse benchmark exit $?"; }
 }
 [ -n "${REPRO_SPP:-}" ] && {
 stamp "two runs of the same render (benchmarks/repro_check.py, spp ${REPRO_SPP}, default launch)"
