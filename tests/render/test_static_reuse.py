@@ -156,3 +156,30 @@ def test_a_mover_that_enters_the_view_later_is_budgeted_on_the_whole_frame(tmp_p
     assert sr["applied"] and sr["dynamic_fraction"]["t0"] == 0.0 and sr["dynamic_fraction"]["max"] > 0.0
     assert np.isfinite(res.manifest["noise_budget"]["predicted_ratio"]) and res.spp >= 1
     assert all(c["z2_mean"] < c["limit"] for c in sr["static_check"])
+
+
+def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path, write_scene, monkeypatch):
+    """The static frame is made again from the render seed on resume: the frames of a render killed after two
+    keyframes and resumed are byte for byte those of an uninterrupted one."""
+    from render2spike.render import reuse as reuse_mod
+    from render2spike.render.job import render_scene
+    from tests.render.test_reproducible import _assert_same_frames
+    scene = _scene(write_scene, duration_s=0.006, render=dict(BASE["render"], keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False}))
+    whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
+    assert whole.manifest["static_reuse"]["applied"]
+    orig, calls = reuse_mod.render_frame_reused, {"n": 0}
+
+    def killed(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise KeyboardInterrupt
+        return orig(*args, **kw)
+
+    monkeypatch.setattr(reuse_mod, "render_frame_reused", killed)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    monkeypatch.setattr(reuse_mod, "render_frame_reused", orig)
+    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    assert res.n_rendered == res.n_frames - 2
+    _assert_same_frames(tmp_path / "a", tmp_path / "b")
