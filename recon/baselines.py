@@ -23,9 +23,9 @@ does not depend on the window chosen.
 Speed is measured from the spikes: :func:`motion_score` is the mean over
 pixels of the squared z-score of the TFP over the central
 :data:`MOTION_SHORT_WINDOW` intervals against the TFP over the whole offered
-window (the difference in units of its shot noise; about 1 or below on a still
-scene, larger the faster the scene moves, and smaller in dim light, where the
-noise hides the motion). A table of format version 3 holds one sub-table per
+window, both pooled over a few pixels (the difference in units of its shot
+noise; about 1 or below on a still scene, larger the faster the scene moves,
+and smaller in dim light, where the noise hides the motion). A table of format version 3 holds one sub-table per
 *motion group* (training data of one range of speeds, ``--group`` of the
 tuner), each with its light levels and their mean motion scores. At run time
 the item's light key and motion score select the pair: the group whose motion
@@ -70,7 +70,9 @@ WINDOW_GRID = (16, 32, 64, 128, 320)
 DEFAULT_WINDOW = 320
 COUNT_WINDOW = 320
 #: short window of :func:`motion_score` [intervals]
-MOTION_SHORT_WINDOW = 32
+MOTION_SHORT_WINDOW = 64
+#: width of the Gaussian that pools :func:`motion_score`'s differences and variances [pixels]
+MOTION_SIGMA_PX = 1.5
 #: floor of motion scores before their logarithm is taken
 MOTION_FLOOR = 1e-3
 #: largest Gaussian width [pixels] accepted for denoising: wider than any frame the project reads, where the
@@ -106,15 +108,20 @@ def light_count(spikes, window: int | None = None, center: int | None = None,
 
 
 def motion_score(spikes, window: int | None = None, center: int | None = None,
-                 short: int = MOTION_SHORT_WINDOW) -> float:
-    """How fast the scene changes, from the spikes alone: mean over pixels of a squared z-score (dimensionless).
+                 short: int = MOTION_SHORT_WINDOW, sigma: float = MOTION_SIGMA_PX) -> float:
+    """How fast the scene changes, from the spikes alone: a mean squared z-score (dimensionless).
 
     ``r_s`` the TFP over the central ``short`` intervals, ``r`` over the centred
-    ``window`` (default all, ``M``); ``z^2 = (r_s - r)^2 / (r (1 - r) (1/short - 1/M))``
-    (the variance of the difference of nested Bernoulli means; pixels with
-    ``r`` 0 or 1 give 0). Still scenes score about 1 or less (integrate-and-fire
-    spikes are more regular than Bernoulli); motion that moves edges by more
-    than the noise in ``short`` intervals raises it. ``short >= M``: 0.
+    ``window`` (default all, ``M``); their difference ``d = r_s - r`` and its
+    variance for a still scene, ``v = r (1 - r) (1/short - 1/M)`` (nested
+    Bernoulli means), are both smoothed by a Gaussian of ``sigma`` pixels (the
+    variance of the smoothed noise is ``G * v / (4 pi sigma^2)``; ``sigma`` 0: per
+    pixel), and the score is the mean over pixels of ``d^2 / v`` (pixels with
+    ``v`` 0 give 0). Pooling a few pixels lets edges that move by a pixel or two
+    in ``short`` intervals stand out of the shot noise of a few spikes. Still
+    scenes score about 1 or below (integrate-and-fire spikes are more regular
+    than Bernoulli, the more so the brighter), faster motion higher; compare
+    scores at the same light level. ``short >= M``: 0.
     """
     s = np.asarray(spikes)
     start, stop = window_bounds(s.shape[0], window, center)
@@ -124,9 +131,13 @@ def motion_score(spikes, window: int | None = None, center: int | None = None,
         return 0.0
     c = (start + stop) // 2
     r = tfp(s, M, c).astype(np.float64)
-    r_s = tfp(s, short, c).astype(np.float64)
-    var = r * (1.0 - r) * (1.0 / short - 1.0 / M)
-    z2 = np.where(var > 1e-12, (r_s - r) ** 2 / np.maximum(var, 1e-12), 0.0)
+    d = tfp(s, short, c).astype(np.float64) - r
+    v = r * (1.0 - r) * (1.0 / short - 1.0 / M)
+    if sigma > 0:
+        from scipy.ndimage import gaussian_filter
+        d = gaussian_filter(d, float(sigma), mode="reflect")
+        v = gaussian_filter(v, float(sigma), mode="reflect") / (4.0 * np.pi * float(sigma) ** 2)
+    z2 = np.where(v > 1e-12, d ** 2 / np.maximum(v, 1e-12), 0.0)
     return float(z2.mean())
 
 
@@ -385,7 +396,7 @@ def tune_table(spec_texts, lux_levels, *, items: int = 8, seed: int = 0, sigmas=
     top = _rows_table(pooled_rows)
     out = {"format": TABLE_FORMAT, "version": 3 if groups else 2, "counts": top["counts"],
            "windows": top["windows"], "sigmas": top["sigmas"], "count_window": COUNT_WINDOW,
-           "motion_short_window": MOTION_SHORT_WINDOW, "data": all_specs, "split": "train", "seed": seed,
+           "motion_short_window": MOTION_SHORT_WINDOW, "motion_sigma_px": MOTION_SIGMA_PX, "data": all_specs, "split": "train", "seed": seed,
            "sigma_grid": [float(s) for s in sigmas], "window_grid": [int(w) for w in windows],
            "levels": top["levels"]}
     if groups:

@@ -206,6 +206,7 @@ def test_motion_score_separates_still_from_moving_scenes_and_picks_the_motion_gr
     m_still, m_moving = (motion_score(s.spikes, 320, s.center) for s in (still, moving))
     # still: z^2 of a nested Bernoulli difference averages 1 at most (integrate-and-fire spikes are more regular)
     assert m_still < 1.0 and m_moving > 2.0 and m_moving > 10 * m_still
+    assert motion_score(moving.spikes, 320, moving.center, sigma=0.0) > 2.0  # per pixel too, at this contrast
     assert motion_score(still.spikes, 32, still.center) == 0.0  # no window shorter than the offered one
     keys = [light_count(s.spikes, 320, s.center) for s in (still, moving)]
     lo, hi = min(keys) / 10, max(keys) * 10
