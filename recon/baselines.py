@@ -28,9 +28,10 @@ noise; about 1 or below on a still scene, larger the faster the scene moves,
 and smaller in dim light, where the noise hides the motion). A table of format version 3 holds one sub-table per
 *motion group* (training data of one range of speeds, ``--group`` of the
 tuner), each with its light levels and their mean motion scores. At run time
-the item's light key and motion score select the pair: the group whose motion
-score, interpolated in log count at the item's light key, is nearest the
-item's in log motion; within it, the window of the level nearest in log count,
+the item's light key and motion score select the pair: the group of
+:func:`motion_group` (the first, slowest group unless a faster group's
+score stands out of it at this light level and is nearer the item's in log);
+within it, the window of the level nearest in log count,
 and the width interpolated linearly in log count among the levels with that
 window (clamped to the table's ends). The window is capped at the intervals
 the caller offers (``window`` argument). No test item is looked at when
@@ -75,6 +76,8 @@ MOTION_SHORT_WINDOW = 64
 MOTION_SIGMA_PX = 1.5
 #: floor of motion scores before their logarithm is taken
 MOTION_FLOOR = 1e-3
+#: a motion group is told apart from the first (slowest) one where its score is at least this factor higher
+MOTION_GROUP_RATIO = 1.5
 #: largest Gaussian width [pixels] accepted for denoising: wider than any frame the project reads, where the
 #: filter is a plain mean; larger widths only cost memory
 MAX_SIGMA_PX = 1000.0
@@ -202,9 +205,14 @@ def window_sigma_for_count(count: float, table: dict | None = None) -> tuple[int
 def motion_group(count: float, motion: float, table: dict) -> dict:
     """The motion group of a version 3 table for an item of light key ``count`` and :func:`motion_score` ``motion``.
 
-    The group whose motion score, interpolated in log count at ``count``
-    (clamped to its levels), is nearest ``motion`` in log (both floored at
-    :data:`MOTION_FLOOR`); a table without groups is its own single group.
+    Each group's motion score at ``count`` is interpolated in log count
+    (clamped to its levels). The first group (the slowest training data) is
+    the default; a later group is a candidate only where its score exceeds the
+    first group's by :data:`MOTION_GROUP_RATIO` or more (where the groups score
+    alike, the motion cannot be told from the noise, or from the scenes'
+    content, at this light level). Of the first group and the candidates, the
+    one nearest ``motion`` in log (both floored at :data:`MOTION_FLOOR`) is
+    returned. A table without groups is its own single group.
     """
     groups = table.get("groups")
     if not groups:
@@ -218,7 +226,9 @@ def motion_group(count: float, motion: float, table: dict) -> dict:
         o = np.argsort(c)
         return float(np.interp(x, c[o], m[o]))
 
-    return groups[int(np.argmin([abs(expected(g) - lm) for g in groups]))]
+    ex = [expected(g) for g in groups]
+    cands = [0] + [i for i in range(1, len(groups)) if ex[i] >= ex[0] + np.log(MOTION_GROUP_RATIO)]
+    return groups[min(cands, key=lambda i: abs(ex[i] - lm))]
 
 
 def window_sigma_for_item(spikes, window: int | None = None, center: int | None = None,

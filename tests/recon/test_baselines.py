@@ -214,6 +214,8 @@ def test_motion_score_separates_still_from_moving_scenes_and_picks_the_motion_gr
          "groups": [{"counts": [lo, hi], "windows": [320, 320], "sigmas": [1.0, 1.0], "motions": [0.5, 0.5]},
                     {"counts": [lo, hi], "windows": [32, 32], "sigmas": [0.0, 0.0], "motions": [30.0, 30.0]}]}
     assert motion_group(keys[0], m_still, t) is t["groups"][0] and motion_group(keys[1], m_moving, t) is t["groups"][1]
+    alike = {**t, "groups": [t["groups"][0], {**t["groups"][1], "motions": [0.6, 0.6]}]}
+    assert motion_group(keys[1], m_moving, alike) is alike["groups"][0]  # scores alike: the first group
     assert window_sigma_for_item(still.spikes, 320, still.center, t) == (320, 1.0)
     assert window_sigma_for_item(moving.spikes, 320, moving.center, t) == (32, 0.0)
     assert window_sigma_for_item(moving.spikes, 320, moving.center, t, motion=False) == (128, 0.5)  # pooled pair
