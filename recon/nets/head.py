@@ -64,6 +64,18 @@ def central_windows(n_total: int, n: int) -> tuple[int, int]:
     return start, start + int(n)
 
 
+def support_windows(n: int, n_total: int, trained_window: int, window: int) -> int:
+    """Windows to average for a support of ``n`` trained windows when the windows given hold ``window`` intervals.
+
+    The support keeps its length in intervals, ``n * trained_window``: ``round(n * trained_window / window)``
+    windows, at least 1; 0 (all) when that reaches ``n_total``, or for ``n = 0``.
+    """
+    if n <= 0:
+        return 0
+    k = max(1, int(round(int(n) * float(trained_window) / max(int(window), 1))))
+    return 0 if k >= n_total else k
+
+
 def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas,
                  head_windows=(0,)) -> "torch.Tensor":
     """The classic estimates the output head chooses among: (B, len(head_windows) * len(sigmas), H, W), target units.
@@ -124,10 +136,34 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas,
 MOTION_POOL_SIGMA = 2.0
 
 
-def motion_cue(windows: "torch.Tensor", head_windows, window: int) -> "torch.Tensor":
-    """Per-pixel motion (or changing light) cue: (B, k, H, W), one channel per short entry of ``head_windows``.
+def window_length(windows: "torch.Tensor", default: int) -> int:
+    """Intervals per window [intervals] of TFP ``windows`` (B, N, H, W), read off their count grid.
 
-    For each ``n`` with ``0 < n < N`` (N = ``windows.shape[1]``), the squared
+    A window of ``w`` intervals holds rates ``k / w`` (``k`` spikes). ``default``
+    (the trained length) when every rate times it is an integer (within 1e-3);
+    else the reciprocal of the smallest positive rate when every rate times
+    that is an integer; else (rates that are not spike counts, or no spike)
+    ``default``.
+    """
+    x = windows.detach()
+
+    def on_grid(w):
+        return float((x * w - torch.round(x * w)).abs().max()) <= 1e-3
+
+    if on_grid(int(default)):
+        return int(default)
+    pos = x[x > 0]
+    if pos.numel() == 0:
+        return int(default)
+    w = int(round(1.0 / float(pos.min())))
+    return w if w >= 1 and on_grid(w) else int(default)
+
+
+def motion_cue(windows: "torch.Tensor", head_windows, window: int) -> "torch.Tensor":
+    """Per-pixel motion (or changing light) cue: (B, len(head_windows), H, W), one channel per entry.
+
+    For each ``n`` with ``0 < n < N`` (N = ``windows.shape[1]``; other entries
+    give a channel of zeros: no shorter support to compare), the squared
     z-score of the TFP over the central ``n`` windows against the TFP over all
     N, ``z^2 = (r_n - r_N)^2 / (r_N (1 - r_N) (1 / (n w) - 1 / (N w)))`` with
     ``w = window`` intervals per window (the variance of the difference of two
@@ -145,6 +181,7 @@ def motion_cue(windows: "torch.Tensor", head_windows, window: int) -> "torch.Ten
     for n in head_windows:
         n = int(n)
         if not 0 < n < N:
+            out.append(torch.zeros_like(r_all))  # no support shorter than all the windows given
             continue
         a, b = central_windows(N, n)
         r_n = windows[:, a:b].mean(dim=1, keepdim=True)

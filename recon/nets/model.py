@@ -9,7 +9,7 @@ from torch import nn
 from sensor.errors import InputError
 
 from .config import RSIRConfig
-from .head import BankHead, classic_bank, head_routing_loss, motion_cue
+from .head import BankHead, classic_bank, head_routing_loss, motion_cue, support_windows, window_length
 from .layers import (Denoiser, HaarDWT, HaarIDWT, LearnedDWT, LearnedIDWT, NoiseInverse, Refine, TemporalFusion,
                      _check_4d)
 
@@ -120,16 +120,17 @@ class RSIRNet(nn.Module):
         if self.head is not None:
             s = out["scale"]
             cfg = self.config
-            bank = classic_bank(windows, maps, cfg.head_sigmas, cfg.head_windows)
+            # supports keep their length in intervals when the windows given are shorter than the trained ones
+            w_len = window_length(windows, cfg.window) if cfg.head_windows != (0,) else cfg.window
+            N = windows.shape[1]
+            supports = [support_windows(n, N, cfg.window, w_len) for n in cfg.head_windows]
+            bank = classic_bank(windows, maps, cfg.head_sigmas, supports)
             cands = torch.cat([out["output"], bank], dim=1)
             level = self.level(windows).expand(-1, 1, *windows.shape[-2:])
             cues = None
-            if cfg.head_motion:
-                # the cue per short window of the trained layout, whatever the number of windows given
-                cues = motion_cue(windows, [n for n in cfg.head_windows if 0 < n < cfg.n_windows], cfg.window)
-                if cues.shape[1] != self.n_cues:  # fewer windows than trained: no short window differs from all
-                    cues = torch.cat([cues, cues.new_zeros(cues.shape[0], self.n_cues - cues.shape[1],
-                                                           *cues.shape[-2:])], dim=1)
+            if cfg.head_motion:  # one channel per short entry of the trained layout
+                short = [k if k > 0 else N for n, k in zip(cfg.head_windows, supports) if 0 < n < cfg.n_windows]
+                cues = motion_cue(windows, short, w_len)
             y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True), cues)
             out["head"], out["head_weights"], out["head_logits"] = y / s, wts, logits
             out["head_candidates"] = cands

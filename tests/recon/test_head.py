@@ -229,10 +229,16 @@ def test_short_window_candidates_follow_a_step_in_light_that_the_long_window_smo
     for k in range(4):  # still light: every support reads the same
         torch.testing.assert_close(right[k], torch.full_like(right[k], 0.05))
     cue = motion_cue(windows, (1, 2, 4, 0), window=32)
-    assert cue.shape == (1, 3, H, W)
+    assert cue.shape == (1, 4, H, W) and float(cue[:, 3].abs().max()) == 0.0  # all windows: nothing to compare
     z2 = (0.3 - 0.175) ** 2 / (0.175 * 0.825 * (1 / 32 - 1 / 320))  # the step in units of its shot noise, ~3.8
     torch.testing.assert_close(cue[0, 0, :, :2], torch.full((H, 2), float(np.log1p(z2))))  # > 6 px from the edge
     assert float(cue[0, 0, :, 14:].max()) < 1e-6  # still, and out of the pooling Gaussian's reach of the step
+    # windows of 8 intervals instead of the trained 32: the supports keep their length in intervals
+    from recon.nets import support_windows, window_length
+    assert [support_windows(n, 40, 32, 8) for n in (1, 2, 4, 0)] == [4, 8, 16, 0]
+    assert [support_windows(n, 10, 32, 8) for n in (1, 2, 4)] == [4, 8, 0]  # 16 of 10 windows: all of them
+    counts = torch.randint(0, 9, (1, 10, 4, 4), generator=torch.Generator().manual_seed(1)).float()
+    assert window_length(counts / 8, 32) == 8 and window_length(counts / 8 + 0.01, 32) == 32
     # the default bank is the all-window slice of a longer bank
     torch.testing.assert_close(classic_bank(windows, None, (0.0, 1.5)),
                                classic_bank(windows, None, (0.0, 1.5), head_windows=(1, 0))[:, 2:])
