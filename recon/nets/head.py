@@ -139,24 +139,19 @@ MOTION_POOL_SIGMA = 2.0
 def window_length(windows: "torch.Tensor", default: int) -> int:
     """Intervals per window [intervals] of TFP ``windows`` (B, N, H, W), read off their count grid.
 
-    A window of ``w`` intervals holds rates ``k / w`` (``k`` spikes). ``default``
-    (the trained length) when every rate times it is an integer (within 1e-3);
-    else the reciprocal of the smallest positive rate when every rate times
-    that is an integer; else (rates that are not spike counts, or no spike)
-    ``default``.
+    A window of ``w`` intervals holds rates ``k / w`` (``k`` spikes): ``w`` is the
+    reciprocal of the smallest positive rate when every rate times it is an
+    integer (within 1e-3; over many pixels some window holds one spike);
+    otherwise (rates that are not spike counts, or no spike at all) ``default``.
     """
     x = windows.detach()
-
-    def on_grid(w):
-        return float((x * w - torch.round(x * w)).abs().max()) <= 1e-3
-
-    if on_grid(int(default)):
-        return int(default)
     pos = x[x > 0]
     if pos.numel() == 0:
         return int(default)
     w = int(round(1.0 / float(pos.min())))
-    return w if w >= 1 and on_grid(w) else int(default)
+    if w < 1 or float((x * w - torch.round(x * w)).abs().max()) > 1e-3:
+        return int(default)
+    return w
 
 
 def motion_cue(windows: "torch.Tensor", head_windows, window: int) -> "torch.Tensor":
