@@ -7,8 +7,8 @@ Methods (``--methods`` of ``render2spike evaluate``, comma-separated)
 ``tfi``        TFI at the centre interval, using the item's spikes
 ``tfp-dt``     dead-time-corrected TFP (``recon.classic.tfp_deadtime``) with the item's profile
 ``tfp-dt-denoised``   the strong classic baseline: ``tfp-dt`` over a window, then a Gaussian; window (at most
-               M) and width chosen from the item's light level with the table tuned on training data
-               (``recon.baselines``)
+               M) and width chosen from the item's light level and motion score (measured from its spikes)
+               with the table tuned on training data (``recon.baselines``)
 ``tfp-dt-denoised:S`` a fixed width of S pixels over the whole M-interval window
 ``rsir:CKPT``  an RSIR-architecture checkpoint; ``rsir:CKPT=LABEL`` names its row
 

@@ -137,8 +137,8 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
 
 
 def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None = None, resume: bool = False,
-          init_checkpoint=None, add_head: bool = False, head_sigmas=None, run_info: dict | None = None,
-          progress: bool = True) -> dict:
+          init_checkpoint=None, add_head: bool = False, head_sigmas=None, head_windows=None,
+          head_motion: bool | None = None, run_info: dict | None = None, progress: bool = True) -> dict:
     """Train (or resume) an RSIR-architecture network on ``dataset``; returns a summary dict.
 
     Parameters
@@ -167,6 +167,11 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         With ``add_head``: the widths [pixels] of the head's smoothed classic
         candidates (``RSIRConfig.head_sigmas``); a head of the checkpoint is
         then replaced by a new one with these widths.
+    head_windows, head_motion : optional
+        With ``add_head``: the candidates' temporal support and the motion cue
+        (``RSIRConfig.head_windows``, ``RSIRConfig.head_motion``); as for
+        ``head_sigmas``, a head of the checkpoint is replaced. The new head
+        starts from the old one (:func:`_with_head`).
     run_info : dict
         Stored in config.json (data spec, noise model, command).
     """
@@ -217,8 +222,9 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
             if model.config.normalise == "fixed" and cfg.train_only != "head":
                 # adopt the new data's light level (the weights stay); not when the network is to stay as it is
                 model.config.intensity_scale = estimate_intensity_scale(dataset)
-            if add_head and (model.head is None or head_sigmas is not None):  # the network plus a new head
-                model = _with_head(model, cfg.seed, device, head_sigmas)
+            new_bank = head_sigmas is not None or head_windows is not None or head_motion is not None
+            if add_head and (model.head is None or new_bank):  # the network plus a new head
+                model = _with_head(model, cfg.seed, device, head_sigmas, head_windows, head_motion)
         else:
             nc = net_config or RSIRConfig.tiny()
             if nc.normalise == "fixed" and nc.intensity_scale == 1.0:
@@ -324,13 +330,30 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
     return summary
 
 
-def _with_head(model, seed: int, device, head_sigmas=None):
-    """A copy of ``model`` with a new output head (same weights otherwise; the head seeded by ``seed``;
-    ``head_sigmas``: its candidates' widths, default the config's)."""
+#: starting logit of a candidate that the old head did not have (its weight starts near e^-8 of the others')
+NEW_CANDIDATE_LOGIT = -8.0
+
+
+def _with_head(model, seed: int, device, head_sigmas=None, head_windows=None, head_motion=None):
+    """A copy of ``model`` with a new output head (same weights otherwise).
+
+    ``head_sigmas``, ``head_windows``, ``head_motion``: the new bank (default the
+    config's). The head is seeded by ``seed``; where ``model`` already has a head
+    of the same CNN width, the new one starts as it: the weights of the
+    candidates both banks hold (same window count and width), the light-level and
+    rate inputs and the correction are copied, new inputs start at zero weight
+    and new candidates at logit :data:`NEW_CANDIDATE_LOGIT`, so the output
+    starts (nearly) at the old head's and training adds what the new candidates
+    are worth.
+    """
     import torch
 
     from .nets import RSIRConfig, RSIRNet
     extra = {"head_sigmas": list(head_sigmas)} if head_sigmas is not None else {}
+    if head_windows is not None:
+        extra["head_windows"] = list(head_windows)
+    if head_motion is not None:
+        extra["head_motion"] = bool(head_motion)
     cfg = RSIRConfig.from_dict({**model.config.to_dict(), "head": True, **extra})
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
@@ -340,7 +363,43 @@ def _with_head(model, seed: int, device, head_sigmas=None):
     if unexpected or any(not k.startswith("head.") for k in missing):
         raise InputError(f"could not add a head to the checkpoint's network (missing {missing}, unexpected "
                          f"{unexpected})", field="--head")
+    if model.head is not None and model.config.head_width == cfg.head_width:
+        _transplant_head(model, new)
     return new
+
+
+def _bank_keys(model) -> list:
+    """(window count, width) of each classic candidate of ``model``'s head, in bank order."""
+    c = model.config
+    n_all = c.n_windows
+    return [(n_all if n <= 0 or n >= n_all else n, float(s)) for n in c.head_windows for s in c.head_sigmas]
+
+
+def _transplant_head(old, new) -> None:
+    """Start ``new``'s head from ``old``'s (see :func:`_with_head`)."""
+    import torch
+    ok, nk = _bank_keys(old), _bank_keys(new)
+    Ko, Kn = 1 + len(ok), 1 + len(nk)
+    # input channel and output row of each old one in the new head: network image, shared candidates, level, rate
+    src = [0] + [1 + i for i, k in enumerate(ok) if k in nk]
+    dst = [0] + [1 + nk.index(k) for k in ok if k in nk]
+    o, n = old.head.net, new.head.net
+    with torch.no_grad():
+        w0 = torch.zeros_like(n[0].weight)
+        w0[:, dst] = o[0].weight[:, src]
+        w0[:, Kn:Kn + 2] = o[0].weight[:, Ko:Ko + 2]  # level, rate
+        n[0].weight.copy_(w0)
+        n[0].bias.copy_(o[0].bias)
+        n[2].weight.copy_(o[2].weight)
+        n[2].bias.copy_(o[2].bias)
+        w4 = torch.zeros_like(n[4].weight)
+        b4 = torch.full_like(n[4].bias, NEW_CANDIDATE_LOGIT)
+        w4[dst] = o[4].weight[src]
+        b4[dst] = o[4].bias[src]
+        w4[Kn] = o[4].weight[Ko]  # the correction
+        b4[Kn] = o[4].bias[Ko]
+        n[4].weight.copy_(w4)
+        n[4].bias.copy_(b4)
 
 
 def _loader(dataset, batches, workers: int):

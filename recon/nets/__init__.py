@@ -42,7 +42,8 @@ except ImportError as exc:  # pragma: no cover - exercised only without torch
 
 from .checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_checkpoint, pick_device, save_checkpoint
 from .config import PRESETS, RSIRConfig
-from .head import BankHead, GaussianBlur, classic_bank, crossing_light, gaussian_blur, head_routing_loss
+from .head import (BankHead, GaussianBlur, central_windows, classic_bank, crossing_light, gaussian_blur,
+                   head_routing_loss, motion_cue, support_windows, window_length)
 from .layers import (AttentionBlock, Denoiser, HaarDWT, HaarIDWT, LearnedDWT, LearnedIDWT, NoiseInverse, Refine,
                      ResidualBlock, TemporalFusion, WindowAttention, haar_dwt, haar_idwt, wavelet_dwt, wavelet_idwt,
                      window_partition, window_reverse)
@@ -50,7 +51,8 @@ from .model import RSIRNet, count_parameters, rsir_loss
 
 __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "load_checkpoint", "pick_device", "save_checkpoint",
            "PRESETS", "RSIRConfig",
-           "BankHead", "GaussianBlur", "classic_bank", "crossing_light", "gaussian_blur", "head_routing_loss",
+           "BankHead", "GaussianBlur", "central_windows", "classic_bank", "crossing_light", "gaussian_blur",
+           "head_routing_loss", "motion_cue", "support_windows", "window_length",
            "AttentionBlock", "Denoiser", "HaarDWT", "HaarIDWT", "LearnedDWT", "LearnedIDWT", "NoiseInverse", "Refine",
            "ResidualBlock", "TemporalFusion", "WindowAttention", "haar_dwt", "haar_idwt", "wavelet_dwt",
            "wavelet_idwt", "window_partition", "window_reverse",

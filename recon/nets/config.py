@@ -66,6 +66,16 @@ class RSIRConfig:
     must choose one width per image (see docs/recon.md, "The output head").
     ``head_width`` channels in its CNN; ``head_route_weight`` weighs its
     routing term in the loss (:func:`recon.nets.head_routing_loss`).
+
+    ``head_windows``: the temporal support of the classic candidates, in
+    windows: the bank holds the TFP over the central ``n`` windows for each
+    ``n`` (0 = all ``N`` windows), each at every width of ``head_sigmas``
+    (``len(head_windows) * len(head_sigmas)`` candidates). The default ``(0,)``
+    is the long window alone; e.g. ``(1, 2, 4, 0)`` lets the head shorten the
+    window where the scene moves and light allows. ``head_motion``: the head
+    also sees, per short window, :func:`recon.nets.motion_cue` (how far the
+    short-window rate departs from the all-window rate, in units of its shot
+    noise).
     """
 
     n_windows: int = 10
@@ -94,6 +104,8 @@ class RSIRConfig:
     head_sigmas: tuple = (0.0, 0.75, 1.5, 3.0, 6.0)
     head_width: int = 16
     head_route_weight: float = 0.02
+    head_windows: tuple = (0,)
+    head_motion: bool = False
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -102,6 +114,16 @@ class RSIRConfig:
         if not self.head_sigmas or any(v < 0 or not math.isfinite(v) for v in self.head_sigmas):
             raise InputError(f"head_sigmas must be widths >= 0 [pixels], got {self.head_sigmas}",
                              field="head_sigmas")
+        hw = tuple(self.head_windows)
+        if not hw or any(isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or v < 0
+                         for v in hw) or len(set(int(v) for v in hw)) != len(hw):
+            raise InputError(f"head_windows must list distinct window counts >= 0 (0 = all windows), got "
+                             f"{self.head_windows}", field="head_windows")
+        self.head_windows = tuple(int(v) for v in hw)
+        if self.head_motion and not any(0 < v < self.n_windows for v in self.head_windows):
+            raise InputError(f"head_motion compares short windows with all {self.n_windows}: head_windows needs "
+                             f"an entry between 1 and {self.n_windows - 1}, got {self.head_windows}",
+                             field="head_motion")
 
     @classmethod
     def tiny(cls, **kw) -> "RSIRConfig":
@@ -138,9 +160,10 @@ class RSIRConfig:
         raise UnknownMethodError("network size preset", name, PRESETS)
 
     def to_dict(self) -> dict:
-        """Plain JSON-ready values (``head_sigmas`` as a list)."""
+        """Plain JSON-ready values (``head_sigmas`` and ``head_windows`` as lists)."""
         d = asdict(self)
         d["head_sigmas"] = list(d["head_sigmas"])
+        d["head_windows"] = list(d["head_windows"])
         return d
 
     @classmethod

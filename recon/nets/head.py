@@ -1,7 +1,9 @@
 """The classic-bank output head: classic estimates the network can choose among, per pixel.
 
-:func:`classic_bank` computes the candidates (the linearised TFP smoothed by
-Gaussians of several widths, inverted with :func:`crossing_light`),
+:func:`classic_bank` computes the candidates (the linearised TFP over the central 1 to N
+windows, smoothed by Gaussians of several widths, inverted with
+:func:`crossing_light`), :func:`motion_cue` a per-pixel cue of how much the
+short windows disagree with the long one,
 :class:`BankHead` weighs them per pixel, and :func:`head_routing_loss` keeps
 every candidate's gradient alive in training.
 """
@@ -49,27 +51,60 @@ class GaussianBlur(nn.Module):
         return gaussian_blur(x, self.sigma)
 
 
-def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -> "torch.Tensor":
-    """The classic estimates the output head chooses among: (B, len(sigmas), H, W), target units.
+def central_windows(n_total: int, n: int) -> tuple[int, int]:
+    """Index range ``[start, stop)`` of the central ``n`` of ``n_total`` windows (``n <= 0`` or ``>= n_total``: all).
 
-    The TFP over all ``windows`` (B, N, H, W) [spikes per interval], its
-    excess over each pixel's dark floor (expected dark spikes per interval)
-    smoothed by a Gaussian of each width in ``sigmas`` [pixels] with hot
-    pixels left out (normalised convolution, as
-    :func:`recon.baselines.smooth_rate`; width 0 keeps each pixel's own value,
-    hot pixels take their neighbours' at 1 pixel), then turned into light:
-    with dark events, the dark level added back and the rate inverted with
-    :func:`crossing_light`; with dark current as a charge (the light and the
-    dark electrons cross the threshold together), the excess itself, clipped
-    at 0. Divided by the PRNU gain. Below about 0.9 spikes per interval this
-    is, within ``f + 1 % + mu``, the dead-time-corrected TFP of
-    :func:`recon.baselines.tfp_dt_denoised` for the crossing reset.
-    ``maps`` (B, >= 2, H, W) = dark floor, PRNU gain and, as third and fourth
-    channels, the hot-pixel and dark-as-charge indicators
+    ``start = n_total // 2 - n // 2``: for an even ``n`` of an even ``n_total`` the
+    range is centred; a single window is the one that starts at the centre.
+    """
+    n_total = int(n_total)
+    if n <= 0 or n >= n_total:
+        return 0, n_total
+    start = max(0, min(n_total // 2 - int(n) // 2, n_total - int(n)))
+    return start, start + int(n)
+
+
+def support_windows(n: int, n_total: int, trained_window: int, window: int) -> int:
+    """Windows to average for a support of ``n`` trained windows when the windows given hold ``window`` intervals.
+
+    The support keeps its length in intervals, ``n * trained_window``: ``round(n * trained_window / window)``
+    windows, at least 1; 0 (all) when that reaches ``n_total``, or for ``n = 0``.
+    """
+    if n <= 0:
+        return 0
+    k = max(1, int(round(int(n) * float(trained_window) / max(int(window), 1))))
+    return 0 if k >= n_total else k
+
+
+def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas,
+                 head_windows=(0,)) -> "torch.Tensor":
+    """The classic estimates the output head chooses among: (B, len(head_windows) * len(sigmas), H, W), target units.
+
+    For each entry ``n`` of ``head_windows`` (window-major order), the TFP over
+    the central ``n`` of the ``windows`` (B, N, H, W) [spikes per interval]
+    (:func:`central_windows`; ``n = 0``: all of them), its excess over each
+    pixel's dark floor (expected dark spikes per interval) smoothed by a
+    Gaussian of each width in ``sigmas`` [pixels] with hot pixels left out
+    (normalised convolution, as :func:`recon.baselines.smooth_rate`; width 0
+    keeps each pixel's own value, hot pixels take their neighbours' at 1
+    pixel), then turned into light: with dark events, the dark level added back
+    and the rate inverted with :func:`crossing_light`; with dark current as a
+    charge (the light and the dark electrons cross the threshold together), the
+    excess itself, clipped at 0. Divided by the PRNU gain. Below about 0.9
+    spikes per interval this is, within ``f + 1 % + mu``, the dead-time-corrected
+    TFP of :func:`recon.baselines.tfp_dt_denoised` for the crossing reset.
+    Short windows follow motion and changing light; long ones average more
+    spikes. ``maps`` (B, >= 2, H, W) = dark floor, PRNU gain and, as third and
+    fourth channels, the hot-pixel and dark-as-charge indicators
     (:func:`recon.profiles.sensor_maps`); None: no dark, gain 1, no hot pixels.
     """
     _check_4d(windows, "windows")
-    r = windows.mean(dim=1, keepdim=True)
+    N = windows.shape[1]
+    rates = []
+    for n in head_windows:
+        a, b = central_windows(N, int(n))
+        rates.append(windows[:, a:b].mean(dim=1, keepdim=True))
+    r = rates[0]
     if maps is None:
         p = torch.zeros_like(r)
         g = torch.ones_like(r)
@@ -82,17 +117,74 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas) -
         g = maps[:, 1:2].to(r.dtype).clamp_min(0.05) if maps.shape[1] > 1 else torch.ones_like(r)
         w = (1.0 - (maps[:, 2:3] > 0).to(r.dtype)) if maps.shape[1] > 2 else torch.ones_like(r)
     charge = (maps[:, 3:4] > 0) if maps is not None and maps.shape[1] > 3 else torch.zeros_like(r, dtype=torch.bool)
-    x = r - p
-    xw = x * w
-
-    def smooth(sig):
-        return gaussian_blur(xw, sig) / gaussian_blur(w, sig).clamp_min(1e-6)
-
     mu = -torch.log1p(-p.clamp(0.0, 0.999))  # expected dark events per interval
     out = []
-    for sig in sigmas:
-        xs = torch.where(w > 0, x, smooth(1.0)) if sig <= 0 else smooth(sig)
-        out.append(torch.where(charge, xs.clamp_min(0.0), crossing_light(xs + p, mu)) / g)
+    for rn in rates:
+        x = rn - p
+        xw = x * w
+
+        def smooth(sig, xw=xw):
+            return gaussian_blur(xw, sig) / gaussian_blur(w, sig).clamp_min(1e-6)
+
+        for sig in sigmas:
+            xs = torch.where(w > 0, x, smooth(1.0)) if sig <= 0 else smooth(sig)
+            out.append(torch.where(charge, xs.clamp_min(0.0), crossing_light(xs + p, mu)) / g)
+    return torch.cat(out, dim=1)
+
+
+#: width [pixels] of the Gaussian that pools the squared z-scores of :func:`motion_cue`
+MOTION_POOL_SIGMA = 2.0
+
+
+def window_length(windows: "torch.Tensor", default: int) -> int:
+    """Intervals per window [intervals] of TFP ``windows`` (B, N, H, W), read off their count grid.
+
+    A window of ``w`` intervals holds rates ``k / w`` (``k`` spikes): ``w`` is the
+    reciprocal of the smallest positive rate when every rate times it is an
+    integer (within 1e-3; over many pixels some window holds one spike);
+    otherwise (rates that are not spike counts, or no spike at all) ``default``.
+    """
+    x = windows.detach()
+    pos = x[x > 0]
+    if pos.numel() == 0:
+        return int(default)
+    w = int(round(1.0 / float(pos.min())))
+    if w < 1 or float((x * w - torch.round(x * w)).abs().max()) > 1e-3:
+        return int(default)
+    return w
+
+
+def motion_cue(windows: "torch.Tensor", head_windows, window: int) -> "torch.Tensor":
+    """Per-pixel motion (or changing light) cue: (B, len(head_windows), H, W), one channel per entry.
+
+    For each ``n`` with ``0 < n < N`` (N = ``windows.shape[1]``; other entries
+    give a channel of zeros: no shorter support to compare), the squared
+    z-score of the TFP over the central ``n`` windows against the TFP over all
+    N, ``z^2 = (r_n - r_N)^2 / (r_N (1 - r_N) (1 / (n w) - 1 / (N w)))`` with
+    ``w = window`` intervals per window (the variance of the difference of two
+    nested Bernoulli means of rate ``r_N``), averaged by a Gaussian of
+    :data:`MOTION_POOL_SIGMA` pixels and returned as ``log(1 + z^2)``. About
+    ``log 2`` (or below: integrate-and-fire spikes are more regular than
+    Bernoulli) where the scene is still, larger where it moves faster than the
+    shot noise hides. ``windows`` (B, N, H, W) in spikes per interval.
+    """
+    _check_4d(windows, "windows")
+    N = windows.shape[1]
+    r_all = windows.mean(dim=1, keepdim=True)
+    var0 = (r_all * (1.0 - r_all)).clamp_min(0.0)
+    out = []
+    for n in head_windows:
+        n = int(n)
+        if not 0 < n < N:
+            out.append(torch.zeros_like(r_all))  # no support shorter than all the windows given
+            continue
+        a, b = central_windows(N, n)
+        r_n = windows[:, a:b].mean(dim=1, keepdim=True)
+        var = var0 * (1.0 / (n * window) - 1.0 / (N * window))
+        z2 = (r_n - r_all) ** 2 / var.clamp_min(1e-6)
+        out.append(torch.log1p(gaussian_blur(z2, MOTION_POOL_SIGMA)))
+    if not out:
+        return windows.new_zeros(windows.shape[0], 0, *windows.shape[-2:])
     return torch.cat(out, dim=1)
 
 
@@ -123,7 +215,9 @@ class BankHead(nn.Module):
     network's scaled units (the network's output first, then
     :func:`classic_bank`), ``level`` (B, 1, H, W) the log mean count,
     ``rate`` (B, 1, H, W) each pixel's raw TFP [spikes per interval] (near 1:
-    read-out saturation, where the classic estimates clip). A CNN
+    read-out saturation, where the classic estimates clip), ``cues``
+    (B, ``n_cues``, H, W) or None: further per-pixel inputs (the motion cue of
+    :func:`motion_cue`). A CNN
     (three 3x3 convolutions, LeakyReLU) maps them to K weights per pixel
     (softmax) and one additive correction (scaled units); returns the weighted
     sum plus the correction (B, 1, H, W), the weights and their logits (for
@@ -134,17 +228,22 @@ class BankHead(nn.Module):
     clips at 1 and the light is higher.
     """
 
-    def __init__(self, n_candidates: int, width: int = 16):
+    def __init__(self, n_candidates: int, width: int = 16, n_cues: int = 0):
         super().__init__()
-        self.net = nn.Sequential(nn.Conv2d(n_candidates + 2, width, 3, padding=1), nn.LeakyReLU(0.1),
+        self.n_cues = int(n_cues)
+        self.net = nn.Sequential(nn.Conv2d(n_candidates + 2 + self.n_cues, width, 3, padding=1), nn.LeakyReLU(0.1),
                                  nn.Conv2d(width, width, 3, padding=1), nn.LeakyReLU(0.1),
                                  nn.Conv2d(width, n_candidates + 1, 3, padding=1))
         nn.init.zeros_(self.net[-1].weight)
         nn.init.zeros_(self.net[-1].bias)
 
-    def forward(self, candidates, level, rate):
+    def forward(self, candidates, level, rate, cues=None):
         _check_4d(candidates, "candidates")
-        z = self.net(torch.cat([candidates, level, rate], dim=1))
+        extra = [] if cues is None else [cues]
+        if sum(c.shape[1] for c in extra) != self.n_cues:
+            raise InputError(f"the head takes {self.n_cues} cue channels, got "
+                             f"{sum(c.shape[1] for c in extra)}", field="cues")
+        z = self.net(torch.cat([candidates, level, rate, *extra], dim=1))
         logits, correction = z[:, :-1], z[:, -1:]
         wts = torch.softmax(logits, dim=1)
         return (wts * candidates).sum(dim=1, keepdim=True) + correction, wts, logits

@@ -9,7 +9,7 @@ from torch import nn
 from sensor.errors import InputError
 
 from .config import RSIRConfig
-from .head import BankHead, classic_bank, head_routing_loss
+from .head import BankHead, classic_bank, head_routing_loss, motion_cue, support_windows, window_length
 from .layers import (Denoiser, HaarDWT, HaarIDWT, LearnedDWT, LearnedIDWT, NoiseInverse, Refine, TemporalFusion,
                      _check_4d)
 
@@ -46,7 +46,18 @@ class RSIRNet(nn.Module):
         if cfg.cumulative:  # start as the identity on the fused bands
             nn.init.zeros_(self.denoiser.out.weight)
             nn.init.zeros_(self.denoiser.out.bias)
-        self.head = BankHead(1 + len(cfg.head_sigmas), cfg.head_width) if cfg.head else None
+        self.head = BankHead(1 + self.n_bank, cfg.head_width, self.n_cues) if cfg.head else None
+
+    @property
+    def n_bank(self) -> int:
+        """Classic candidates of the output head (:func:`recon.nets.classic_bank`)."""
+        return len(self.config.head_windows) * len(self.config.head_sigmas)
+
+    @property
+    def n_cues(self) -> int:
+        """Motion-cue channels the output head sees (:func:`recon.nets.motion_cue`)."""
+        cfg = self.config
+        return sum(1 for n in cfg.head_windows if 0 < n < cfg.n_windows) if cfg.head_motion else 0
 
     @property
     def multiple(self) -> int:
@@ -108,10 +119,19 @@ class RSIRNet(nn.Module):
                 out = self._trunk(windows, maps)
         if self.head is not None:
             s = out["scale"]
-            bank = classic_bank(windows, maps, self.config.head_sigmas)
+            cfg = self.config
+            # supports keep their length in intervals when the windows given are shorter than the trained ones
+            w_len = window_length(windows, cfg.window) if cfg.head_windows != (0,) else cfg.window
+            N = windows.shape[1]
+            supports = [support_windows(n, N, cfg.window, w_len) for n in cfg.head_windows]
+            bank = classic_bank(windows, maps, cfg.head_sigmas, supports)
             cands = torch.cat([out["output"], bank], dim=1)
             level = self.level(windows).expand(-1, 1, *windows.shape[-2:])
-            y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True))
+            cues = None
+            if cfg.head_motion:  # one channel per short entry of the trained layout
+                short = [k if k > 0 else N for n, k in zip(cfg.head_windows, supports) if 0 < n < cfg.n_windows]
+                cues = motion_cue(windows, short, w_len)
+            y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True), cues)
             out["head"], out["head_weights"], out["head_logits"] = y / s, wts, logits
             out["head_candidates"] = cands
             out["output"] = out["head"]

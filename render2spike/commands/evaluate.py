@@ -30,7 +30,7 @@ def register(subparsers) -> None:
                         "recording without a reference image (stationary pixels against their long-window rate)")
     p.add_argument("--methods", default="tfp,tfi,tfp-dt,tfp-dt-denoised",
                    help="comma-separated: tfp, tfp:N, tfi, tfp-dt, tfp-dt-denoised (the strong classic baseline: "
-                        "width tuned per light level on training data), tfp-dt-denoised:SIGMA, rsir:CKPT[=LABEL]")
+                        "window and width tuned per light level and measured speed on training data), tfp-dt-denoised:SIGMA, rsir:CKPT[=LABEL]")
     p.add_argument("--noise-model", default="elssim", choices=["elssim", "ideal", "isi"],
                    help="spike model for simulated test data (a model= spec option wins)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (table.md, table.csv, grid.png, ...)")

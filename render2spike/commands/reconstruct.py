@@ -28,7 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("spikes", metavar="SPIKES", help="spike file (.npz, .dat, .h5)")
     p.add_argument("--method", default="tfp", choices=["tfp", "tfi", "tfp-dt", "tfp-dt-denoised", "rsir"],
                    help="tfp (default), tfi, tfp-dt (dead-time corrected), tfp-dt-denoised (the strong classic "
-                        "baseline: smoothed with a width tuned per light level), rsir (a network)")
+                        "baseline: window and width tuned per light level and measured speed), rsir (a network)")
     p.add_argument("--checkpoint", metavar="CKPT",
                    help="network checkpoint for rsir (default: the pretrained network shipped with the package)")
     p.add_argument("--out", required=True, metavar="DIR")

@@ -78,6 +78,12 @@ def register(subparsers) -> None:
                    help="with --head: widths [pixels] of the head's Gaussian-smoothed classic candidates, e.g. "
                         "0,0.75,1.5,3,6,12 (default 0,0.75,1.5,3,6); with --init, a head of the checkpoint is "
                         "replaced by a new one of these widths")
+    p.add_argument("--head-windows", metavar="LIST", type=_counts,
+                   help="with --head: the candidates' temporal support, window counts around the centre (0 = all), "
+                        "e.g. 1,2,4,0 (default 0); each at every --head-sigmas width")
+    p.add_argument("--head-motion", action="store_true",
+                   help="with --head and a short --head-windows entry: give the head the per-pixel motion cue "
+                        "(short- vs all-window disagreement in units of shot noise)")
     p.add_argument("--train-only", choices=["head"],
                    help="train only the output head, keeping the rest of the network fixed (with --init "
                         "CKPT --head: a few CPU minutes)")
@@ -128,6 +134,18 @@ def _sigmas(text: str) -> list:
     return v
 
 
+def _counts(text: str) -> list:
+    """``--head-windows``: comma-separated window counts >= 0 (0 = all windows)."""
+    import argparse
+    try:
+        v = [int(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated window counts, got '{text}'") from None
+    if not v or any(x < 0 for x in v) or len(set(v)) != len(v):
+        raise argparse.ArgumentTypeError(f"expected distinct window counts >= 0, got '{text}'")
+    return v
+
+
 def run(args) -> int:
     import sys
 
@@ -161,8 +179,10 @@ def run(args) -> int:
         extra = ["--head"] * args.head + ["--train-only"] * bool(args.train_only)
         raise InputError(f"--resume continues the stored network and training settings; drop "
                          f"{', '.join(given + extra)}", field="--resume")
-    if args.head_sigmas is not None and not args.head:
-        raise InputError("--head-sigmas sets the widths of the output head: add --head", field="--head-sigmas")
+    for flag, on in (("--head-sigmas", args.head_sigmas is not None), ("--head-windows", args.head_windows is not None),
+                     ("--head-motion", args.head_motion)):
+        if on and not args.head:
+            raise InputError(f"{flag} sets the output head's bank: add --head", field=flag)
     if args.train_only and not args.init:
         raise InputError("--train-only head keeps the rest of the network as it is: start from a trained one with "
                          "--init CKPT --head", field="--train-only")
@@ -170,7 +190,9 @@ def run(args) -> int:
     if args.overwrite:
         clear_run(Path(args.out))
     net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
-                             linearise=args.linearise, level_input=args.level_input, head=args.head)
+                             linearise=args.linearise, level_input=args.level_input, head=args.head,
+                             **{k: v for k, v in (("head_sigmas", args.head_sigmas), ("head_windows", args.head_windows),
+                                                  ("head_motion", args.head_motion or None)) if v is not None})
     for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:
@@ -182,7 +204,8 @@ def run(args) -> int:
     info = {"data": args.data, "noise_model": ds.model, "items": len(ds), "command": " ".join(sys.argv),
             "size": args.size or "tiny"}
     summary = train(ds, args.out, net_config=net, train_config=cfg, resume=args.resume, init_checkpoint=args.init,
-                    add_head=args.head, head_sigmas=args.head_sigmas, run_info=info, progress=not args.quiet)
+                    add_head=args.head, head_sigmas=args.head_sigmas, head_windows=args.head_windows,
+                    head_motion=args.head_motion or None, run_info=info, progress=not args.quiet)
     print(f"trained {summary['steps_done']} steps in {summary['elapsed_s'] / 60:.1f} min on {summary['device']}; "
           f"final loss {summary['final_loss']:.4g}; model: {summary['model']}")
     return 0

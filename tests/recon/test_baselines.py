@@ -180,3 +180,74 @@ def test_tune_command_writes_a_window_table(tmp_path):
     assert t["version"] == 2 and t["split"] == "train" and set(t["windows"]) <= {32, 320}
     assert t["counts"] == sorted(t["counts"]) and len(t["levels"]) == 2
     assert set(t["levels"][0]["psnr_by_window_sigma"]) == {"32", "320"}
+
+
+def _moving_sample(seed, size=32, T=320, step_intervals=16):
+    """Bright vertical bars drifting one pixel every ``step_intervals`` intervals on a dim background."""
+    prof = uniform_profile(size, size)
+    th = prof.threshold_e
+    t = np.arange(T + 64)[:, None, None]
+    x = np.arange(size)[None, None, :]
+    bars = ((x + t // step_intervals) % 16) < 6
+    rate = np.where(bars, 0.3 * th, 0.05 * th) * np.ones((1, size, 1))
+    rate = rate.astype(np.float32)
+    u = np.random.default_rng(300 + seed).uniform(0.0, 1.0, (size, size))
+    rate[:64] = (u * th / 64).astype(np.float32)
+    spikes = simulate(rate, prof, "elssim", seed=seed)[64:]
+    target = (rate[64 + T // 2] / th)[None]
+    return Sample(windows=np.zeros((10, size, size), np.float32), target=target, maps=np.zeros((2, size, size)),
+                  spikes=spikes, center=T // 2, profile=prof, meta={"window": T // 10})
+
+
+def test_motion_score_separates_still_from_moving_scenes_and_picks_the_motion_group():
+    from recon.baselines import light_count, motion_group, motion_score, window_sigma_for_item
+    lam = 0.2 * uniform_profile(1, 1).threshold_e
+    still, moving = _flat_sample(lam, 3), _moving_sample(3)
+    m_still, m_moving = (motion_score(s.spikes, 320, s.center) for s in (still, moving))
+    # still: z^2 of a nested Bernoulli difference averages 1 at most (integrate-and-fire spikes are more regular)
+    assert m_still < 1.0 and m_moving > 2.0 and m_moving > 10 * m_still
+    assert motion_score(moving.spikes, 320, moving.center, sigma=0.0) > 2.0  # per pixel too, at this contrast
+    assert motion_score(still.spikes, 32, still.center) == 0.0  # no window shorter than the offered one
+    keys = [light_count(s.spikes, 320, s.center) for s in (still, moving)]
+    lo, hi = min(keys) / 10, max(keys) * 10
+    t = {"counts": [lo, hi], "windows": [128, 128], "sigmas": [0.5, 0.5], "count_window": 320,
+         "groups": [{"counts": [lo, hi], "windows": [320, 320], "sigmas": [1.0, 1.0], "motions": [0.5, 0.5]},
+                    {"counts": [lo, hi], "windows": [32, 32], "sigmas": [0.0, 0.0], "motions": [30.0, 30.0]}]}
+    assert motion_group(keys[0], m_still, t) is t["groups"][0] and motion_group(keys[1], m_moving, t) is t["groups"][1]
+    alike = {**t, "groups": [t["groups"][0], {**t["groups"][1], "motions": [0.6, 0.6]}]}
+    assert motion_group(keys[1], m_moving, alike) is alike["groups"][0]  # scores alike: the first group
+    assert window_sigma_for_item(still.spikes, 320, still.center, t) == (320, 1.0)
+    assert window_sigma_for_item(moving.spikes, 320, moving.center, t) == (32, 0.0)
+    assert window_sigma_for_item(moving.spikes, 320, moving.center, t, motion=False) == (128, 0.5)  # pooled pair
+    np.testing.assert_array_equal(tfp_dt_denoised(moving.spikes, moving.profile, 320, moving.center, table=t),
+                                  tfp_dt_denoised(moving.spikes, moving.profile, 32, moving.center, sigma=0.0))
+    # and the short window is the better choice there: the moving bars blur out over 320 intervals
+    th = moving.profile.threshold_e
+    short = tfp_dt_denoised(moving.spikes, moving.profile, 32, moving.center, sigma=0.0) / th
+    long = tfp_dt_denoised(moving.spikes, moving.profile, 320, moving.center, sigma=0.0) / th
+    from recon.metrics import psnr_ssim
+    assert psnr_ssim(short, moving.target[0])[0] > psnr_ssim(long, moving.target[0])[0] + 3.0
+
+
+def test_grouped_tuning_writes_a_motion_table(tmp_path):
+    from recon.baselines import load_sigma_table as load
+    from recon.baselines import main
+    from recon.synth import make_davis_like
+    root = make_davis_like(tmp_path / "davis", ["tr-a", "tr-b", "te-a"], n_frames=3, size=(8, 8), seed=4)
+    split = tmp_path / "split.json"
+    split.write_text(json.dumps({"train": ["tr-a", "tr-b"], "test": ["te-a"]}))
+    out = tmp_path / "table.json"
+    spec = f"davis:{root}:split_file={split}:res=8x8:warmup=8:frame_stride=2"
+    assert main(["tune", "--group", spec, "--group", f"{spec};{spec}", "--lux", "5,500", "--items", "1",
+                 "--windows", "32,320", "--out", str(out)]) == 0
+    t = load(out)
+    assert t["version"] == 3 and len(t["groups"]) == 2 and len(t["counts"]) == 2
+    for g in t["groups"]:
+        assert len(g["counts"]) == len(g["motions"]) == 2 and set(g["windows"]) <= {32, 320}
+    assert len(t["groups"][1]["data"]) == 2 and t["groups"][1]["levels"][0]["items"] == 2
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**json.loads(out.read_text()), "groups": [{"counts": [1.0], "windows": [32]}]}))
+    with pytest.raises(InputError, match="group 0"):
+        load(bad)
+    with pytest.raises(SystemExit):
+        main(["tune", "--lux", "5", "--out", str(out)])

@@ -209,3 +209,86 @@ def test_head_runs_without_maps_and_checkpoints_from_before_the_head_still_load(
                              .astype(np.float32))
     with torch.no_grad():  # the third (hot-pixel) map channel is ignored by a network without a head
         torch.testing.assert_close(model.reconstruct(windows, maps3), base.eval().reconstruct(windows, maps3[:, :2]))
+
+
+def test_short_window_candidates_follow_a_step_in_light_that_the_long_window_smooths_over():
+    """Light steps up at the centre: the central window's candidate reads the new level, the all-window one the mean;
+    the motion cue rises where the step happened and stays near its still-scene level elsewhere."""
+    from recon.nets import central_windows, motion_cue
+    assert central_windows(10, 1) == (5, 6) and central_windows(10, 2) == (4, 6) and central_windows(10, 4) == (3, 7)
+    assert central_windows(10, 0) == central_windows(10, 10) == central_windows(10, 12) == (0, 10)
+    H = W = 16
+    windows = torch.full((1, 10, H, W), 0.05)
+    windows[:, 5:, :, :8] = 0.3  # the left half brightens from the central window on; the right half stays
+    bank = classic_bank(windows, None, (0.0,), head_windows=(1, 2, 4, 0))
+    assert bank.shape == (1, 4, H, W)
+    left, right = bank[0, :, :, :4], bank[0, :, :, 12:]
+    torch.testing.assert_close(left[0], torch.full_like(left[0], 0.3))  # one window: the new level
+    torch.testing.assert_close(left[1], torch.full_like(left[1], 0.175))  # windows 4, 5: half before, half after
+    torch.testing.assert_close(left[3], torch.full_like(left[3], 0.175))  # all ten: the mean
+    for k in range(4):  # still light: every support reads the same
+        torch.testing.assert_close(right[k], torch.full_like(right[k], 0.05))
+    cue = motion_cue(windows, (1, 2, 4, 0), window=32)
+    assert cue.shape == (1, 4, H, W) and float(cue[:, 3].abs().max()) == 0.0  # all windows: nothing to compare
+    z2 = (0.3 - 0.175) ** 2 / (0.175 * 0.825 * (1 / 32 - 1 / 320))  # the step in units of its shot noise, ~3.8
+    torch.testing.assert_close(cue[0, 0, :, :2], torch.full((H, 2), float(np.log1p(z2))))  # > 6 px from the edge
+    assert float(cue[0, 0, :, 14:].max()) < 1e-6  # still, and out of the pooling Gaussian's reach of the step
+    # windows of 8 intervals instead of the trained 32: the supports keep their length in intervals
+    from recon.nets import support_windows, window_length
+    assert [support_windows(n, 40, 32, 8) for n in (1, 2, 4, 0)] == [4, 8, 16, 0]
+    assert [support_windows(n, 10, 32, 8) for n in (1, 2, 4)] == [4, 8, 0]  # 16 of 10 windows: all of them
+    counts = torch.randint(0, 9, (1, 10, 4, 4), generator=torch.Generator().manual_seed(1)).float()
+    assert window_length(counts / 8, 32) == 8 and window_length(counts / 8 + 0.01, 32) == 32
+    # the default bank is the all-window slice of a longer bank
+    torch.testing.assert_close(classic_bank(windows, None, (0.0, 1.5)),
+                               classic_bank(windows, None, (0.0, 1.5), head_windows=(1, 0))[:, 2:])
+
+
+def test_head_windows_config_round_trips_checks_and_defaults_to_the_long_window():
+    cfg = RSIRConfig.tiny(head=True, head_sigmas=[0, 1.5], head_windows=[1, 4, 0], head_motion=True)
+    assert cfg.head_windows == (1, 4, 0) and cfg.to_dict()["head_windows"] == [1, 4, 0]
+    assert RSIRConfig.from_dict(cfg.to_dict()) == cfg
+    net = RSIRNet(cfg)
+    assert net.n_bank == 6 and net.n_cues == 2 and net.head.net[0].in_channels == 1 + 6 + 2 + 2
+    d = cfg.to_dict()
+    for key in ("head_windows", "head_motion"):  # a config written before these fields: the long window alone
+        d.pop(key)
+    old = RSIRConfig.from_dict(d)
+    assert old.head_windows == (0,) and old.head_motion is False and RSIRNet(old).n_bank == 2
+    for bad in ((-1,), (), (2, 2), (1.5,)):
+        with pytest.raises(InputError, match="head_windows"):
+            RSIRConfig.tiny(head=True, head_windows=bad)
+    with pytest.raises(InputError, match="head_motion"):
+        RSIRConfig.tiny(head=True, head_windows=(0,), head_motion=True)
+
+
+def test_a_head_with_short_windows_starts_from_the_old_head_and_old_checkpoints_give_the_same_output(tmp_path):
+    from recon.nets import load_checkpoint, save_checkpoint
+    from recon.train import NEW_CANDIDATE_LOGIT, _with_head
+    old = _with_head(_tiny(), seed=3, device="cpu").eval()
+    with torch.no_grad():  # a trained-looking head: nonzero last layer
+        old.head.net[-1].weight.normal_(0.0, 0.1, generator=torch.Generator().manual_seed(4))
+        old.head.net[-1].bias.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(5))
+    rng = np.random.default_rng(1)
+    windows = torch.from_numpy((rng.uniform(0, 1, (2, 10, 16, 16)) < 0.2).astype(np.float32))
+    prof = uniform_profile(16, 16)
+    maps = torch.from_numpy(np.repeat(sensor_maps(prof)[None], 2, 0).astype(np.float32))
+    y_old = old.reconstruct(windows, maps)
+    # a checkpoint whose config predates head_windows / head_motion loads as the same network, same output
+    path = save_checkpoint(tmp_path / "old.pt", old)
+    ck = torch.load(path, weights_only=True)
+    for key in ("head_windows", "head_motion"):
+        ck["config"].pop(key)
+    torch.save(ck, path)
+    back, _ = load_checkpoint(path)
+    assert back.config.head_windows == (0,)
+    torch.testing.assert_close(back.reconstruct(windows, maps), y_old, rtol=0, atol=0)
+    # the temporal bank starts as the old head: the new candidates' weights start at about e^-8 of the others'
+    new = _with_head(old, seed=6, device="cpu", head_windows=(1, 2, 4, 0), head_motion=True).eval()
+    assert new.n_bank == 4 * len(old.config.head_sigmas) and new.n_cues == 3
+    out = new(windows, maps)
+    K = len(old.config.head_sigmas)
+    w_new = out["head_weights"][:, 1:1 + 3 * K].detach()  # the short-window candidates
+    assert float(w_new.max()) < 20 * np.exp(NEW_CANDIDATE_LOGIT)
+    y_new = out["output"].detach()
+    assert float((y_new - y_old).abs().max()) < 0.01 * float(y_old.abs().max())

@@ -121,3 +121,23 @@ def test_resume_refuses_other_data_or_noise_model_and_a_file_as_out(tmp_path, ca
         err = capsys.readouterr().err
         assert "victim.npz" in err and "--out" in err and "Error" not in err, err
     assert (tmp_path / "victim.npz").read_bytes() == b"keep"
+
+
+@pytest.mark.torch
+def test_train_temporal_head_on_the_cli(tmp_path, capsys):
+    """--head-windows / --head-motion: a temporal bank started from the checkpoint's head; refused without --head."""
+    from recon.nets import load_checkpoint
+    data = _tiny_data(tmp_path)
+    assert _cli("train", "--data", data, "--out", tmp_path / "a", "--steps", 1, "--batch-size", 1, "--head",
+                *NET) == 0
+    assert _cli("train", "--data", data, "--out", tmp_path / "b", "--steps", 1, "--batch-size", 1, "--quiet",
+                "--init", tmp_path / "a" / "model.pt", "--head", "--head-windows", "1,4,0", "--head-motion",
+                "--train-only", "head") == 0
+    model, ckpt = load_checkpoint(tmp_path / "b" / "model.pt")
+    assert model.config.head_windows == (1, 4, 0) and model.config.head_motion and model.n_cues == 2
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["network"]["head_windows"] == [1, 4, 0]
+    assert _cli("train", "--data", data, "--out", tmp_path / "c", "--steps", 1, "--quiet",
+                "--init", tmp_path / "a" / "model.pt", "--head-windows", "1,0") == 2
+    assert "--head" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        _cli("train", "--data", data, "--out", tmp_path / "c", "--head", "--head-windows", "1,1")
