@@ -125,9 +125,12 @@ SPEC_SCHEMA = {
             {"type": "object", "additionalProperties": False, "required": ["frames"],
              "properties": {"frames": {"type": "string"}, "profile": {"type": "string"}}},
             {"type": "object", "additionalProperties": False, "required": ["procedural"],
-             "properties": {"procedural": {"type": "object", "required": ["count"]},
+             "properties": {"procedural": {"type": "object", "anyOf": [{"required": ["count"]},
+                                                                      {"required": ["index", "seed"]}]},
                             "set": {"type": "array", "items": {"type": "string"}}}}]}},
         "set": {"type": "array", "items": {"type": "string"}},
+        # written by load_spec (a loaded spec, e.g. a manifest's, loads again): each scene's entry in the file
+        "scene_entries": {"type": "array", "items": {"type": "array"}},
         "duration_s": _AXIS, "lux": _AXIS,
         "params": {"type": "object", "additionalProperties": _AXIS},
         "profiles": _WORDS, "models": _WORDS,
@@ -246,59 +249,94 @@ def load_spec(spec) -> tuple[dict, Path | None]:
     from render2spike.render.scene import resolve_scene_path
     base = path.parent if path else Path.cwd()
     seen = {}
-    out["scenes"] = _expand_procedural(out["scenes"], path)
+    out["scenes"], out["scene_entries"] = _expand_procedural(out["scenes"], path, out.get("duration_s"),
+                                                            out.get("scene_entries"))
     for i, sc in enumerate(out["scenes"]):
         if isinstance(sc, dict) and "procedural" in sc:
             ident = json.dumps(sc, sort_keys=True)
-            _check_sets(sc["set"], path, f"scenes.{i}.set")
+            _check_sets(sc["set"], path, f"{_entry(out, i)}.set")
         elif isinstance(sc, dict) and "frames" in sc:
             f = Path(sc["frames"])
             f = f if f.is_absolute() else base / f
-            _check_frames_source(f, path, f"scenes.{i}.frames")
+            _check_frames_source(f, path, f"{_entry(out, i)}.frames")
             sc["frames"] = str(f.resolve())
             if sc.get("profile") is not None:
-                _check_profile_name(sc["profile"], path, f"scenes.{i}.profile", allow_scene=False)
+                _check_profile_name(sc["profile"], path, f"{_entry(out, i)}.profile", allow_scene=False)
             ident = json.dumps(sc, sort_keys=True)
         else:
             name = sc["scene"] if isinstance(sc, dict) else sc
             if not name.strip():
-                raise InputError("expected a scene name or file, got ''", path=path, field=f"scenes.{i}")
+                raise InputError("expected a scene name or file, got ''", path=path, field=_entry(out, i))
             cand = Path(name) if Path(name).is_absolute() else base / name
             try:
                 resolved = resolve_scene_path(cand if cand.is_file() else name)
             except InputError as exc:
-                raise InputError(str(exc), path=path, field=f"scenes.{i}") from None
+                raise InputError(str(exc), path=path, field=_entry(out, i)) from None
             sets = list(sc.get("set", [])) if isinstance(sc, dict) else []
-            _check_sets(sets, path, f"scenes.{i}.set")
+            _check_sets(sets, path, f"{_entry(out, i)}.set")
             out["scenes"][i] = {"scene": str(resolved.resolve()), "set": sets}
             ident = json.dumps(out["scenes"][i], sort_keys=True)
         if ident in seen:
-            raise InputError(f"scenes.{seen[ident]} is the same scene with the same overrides; list each once",
-                             path=path, field=f"scenes.{i}")
+            raise InputError(f"{_entry_text(out, seen[ident])} is the same scene with the same overrides as "
+                             f"{_entry_text(out, i)}; list each once", path=path, field=_entry(out, i))
         seen[ident] = i
     frames_sources = [i for i, sc in enumerate(out["scenes"]) if "frames" in sc]
     if frames_sources:
         fixed = [k for k in ("duration_s",) if out.get(k) is not None] + (["params"] if out["params"] else []) + \
                 (["set"] if out["set"] else [])
         if fixed:
-            raise InputError(f"'{fixed[0]}' changes renders, but scenes.{frames_sources[0]} is a folder of frames "
+            raise InputError(f"'{fixed[0]}' changes renders, but {_entry(out, frames_sources[0])} is a folder of frames "
                              "already rendered: its samples would repeat; put frames folders in a spec without "
                              f"'{fixed[0]}'", path=path, field=fixed[0])
     return out, path
 
 
-def _expand_procedural(scenes: list, path) -> list:
+def _entry(spec: dict, i: int) -> str:
+    """The spec key of scene ``i`` of the loaded (expanded) list: ``scenes.E``, E its entry in the spec file."""
+    ent = spec.get("scene_entries")
+    return f"scenes.{ent[i][0] if ent else i}"
+
+
+def _entry_text(spec: dict, i: int) -> str:
+    """:func:`_entry`, with the generated scene's number for a procedural entry."""
+    ent = spec.get("scene_entries")
+    k = ent[i][1] if ent else None
+    return _entry(spec, i) + ("" if k is None else f" (generated scene {k})")
+
+
+def _longest(duration) -> float | None:
+    """The longest clip a ``duration_s`` axis asks for [s] (a value, a list or a range), or None."""
+    if duration is None:
+        return None
+    if isinstance(duration, dict):
+        return float(max(next(iter(duration.values()))))
+    return float(max(duration)) if isinstance(duration, list) else float(duration)
+
+
+def _expand_procedural(scenes: list, path, duration=None, prior: list | None = None) -> tuple[list, list]:
     """The spec's scenes with each ``{procedural: {count: N, seed: S, ...}}`` entry replaced by its N generated
-    scenes (:mod:`render2spike.scenegen`), each ``{procedural: {seed, index, options}, set}``; the options checked
-    here (errors name ``scenes.I.procedural.KEY``). Workers generate each scene again from its seed and index."""
+    scenes (:mod:`render2spike.scenegen`), each ``{procedural: {seed, index, options}, set}``, and for each
+    scene ``[entry, generated index or None]`` (errors name the entry). The options are checked here (errors
+    name ``scenes.E.procedural.KEY``); without ``duration_s`` of their own they take the spec's longest clip
+    (``duration``), which sizes the background for a panning camera. Workers generate each scene again from its
+    seed, index and options. A loaded spec's scenes (already expanded: ``index`` instead of ``count``) stay, with
+    its ``prior`` entries."""
     from render2spike.scenegen import check_options
-    out = []
+    out, entries = [], []
+    if prior is not None and len(prior) != len(scenes):
+        raise InputError(f"scene_entries has {len(prior)} items for {len(scenes)} scenes", path=path,
+                         field="scene_entries")
     for i, sc in enumerate(scenes):
-        if not (isinstance(sc, dict) and "procedural" in sc):
+        if not (isinstance(sc, dict) and "procedural" in sc and "count" in sc["procedural"]):
             out.append(sc)
+            k = sc["procedural"]["index"] if isinstance(sc, dict) and "procedural" in sc else None
+            entries.append(list(prior[i]) if prior is not None else [i, k])
             continue
         opts = dict(sc["procedural"])
         count, seed = opts.pop("count"), opts.pop("seed", 0)
+        longest = _longest(duration)
+        if longest is not None and "duration_s" not in opts:
+            opts["duration_s"] = longest
         for key, v, most in (("count", count, MAX_SAMPLES), ("seed", seed, 2 ** 32 - 1)):
             if not (isinstance(v, int) and not isinstance(v, bool) and (v >= 1 if key == "count" else v >= 0)
                     and v <= most):
@@ -312,7 +350,8 @@ def _expand_procedural(scenes: list, path) -> list:
         given = {k: checked[k] for k in sorted(opts)}
         out.extend({"procedural": {"seed": int(seed), "index": k, "options": given}, "set": list(sc.get("set", []))}
                    for k in range(count))
-    return out
+        entries.extend([i, k] for k in range(count))
+    return out, entries
 
 
 def _scene_arg(source: dict):
@@ -678,7 +717,7 @@ def _scene_error(s: SampleSpec, spec: dict, path, cache: dict, exc: Exception) -
     i = next(j for j, sc in enumerate(spec["scenes"]) if sc == s.source)
     own = list(s.source.get("set", []))
     n_common = len(spec["set"])
-    tries = [(f"scenes.{i}", own, None, None), ("set", own + list(spec["set"]), None, None)]
+    tries = [(_entry(spec, i), own, None, None), ("set", own + list(spec["set"]), None, None)]
     if s.duration_s is not None:
         tries.append((_axis_field(spec, "duration_s", s.duration_s), own + list(spec["set"]), s.duration_s,
                       f"duration_s={s.duration_s!r}"))
@@ -697,7 +736,7 @@ def _scene_error(s: SampleSpec, spec: dict, path, cache: dict, exc: Exception) -
                               field=where)
     text = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
     what = ", ".join([f"duration_s={s.duration_s!r}"] * (s.duration_s is not None) + list(s.sets[n_common:]))
-    return InputError(f"with {what}: {text}", path=path, field=f"scenes.{i}")
+    return InputError(f"{_entry_text(spec, i)} with {what}: {text}", path=path, field=_entry(spec, i))
 
 
 def _inspect_render(s: SampleSpec, spec: dict, path, cache: dict) -> _Render:
@@ -715,7 +754,7 @@ def _inspect_render(s: SampleSpec, spec: dict, path, cache: dict) -> _Render:
         raise _scene_error(s, spec, path, cache, exc) from None
     if sc.duration_s < sc.profile.interval_s:
         where = _axis_field(spec, "duration_s", s.duration_s) if s.duration_s is not None else \
-            f"scenes.{next(j for j, x in enumerate(spec['scenes']) if x == s.source)}"
+            _entry(spec, next(j for j, x in enumerate(spec['scenes']) if x == s.source))
         raise InputError(f"a clip of {sc.duration_s!r} s is shorter than one interval of the camera "
                          f"({sc.profile.interval_s!r} s)", path=path, field=where)
     return _Render(sc.content_hash({"dataset_render": 1}), (sc.profile.height, sc.profile.width),
@@ -730,7 +769,7 @@ def _check_sensor(s: SampleSpec, r: _Render, spec: dict, path, profiles: dict) -
     from sensor.rates import n_intervals_spanned
     i = next(j for j, x in enumerate(spec["scenes"]) if x == s.source)
     if s.profile == "scene":
-        where = f"scenes.{i}" + (".profile" if "frames" in s.source else "")
+        where = _entry(spec, i) + (".profile" if "frames" in s.source else "")
         base = r.camera_profile
         if base is None:
             raise InputError(f"the frames in {s.source['frames']} do not say which sensor they were rendered for; "
@@ -748,7 +787,7 @@ def _check_sensor(s: SampleSpec, r: _Render, spec: dict, path, profiles: dict) -
         raise InputError(str(exc), path=path, field=where) from None
     n_intervals = n_intervals_spanned(0.0, r.span_s, prof.interval_s)
     if s.centers > n_intervals:
-        raise InputError(f"{s.centers} window centres in a clip of {n_intervals} intervals (scenes.{i}); at most one "
+        raise InputError(f"{s.centers} window centres in a clip of {n_intervals} intervals ({_entry_text(spec, i)}); at most one "
                          "per interval", path=path, field="centers")
     try:
         parse_model_spec(s.model).profile(prof)
@@ -808,11 +847,11 @@ def prepare(spec: dict, path=None, log=print) -> Plan:
                                  "({uniform: [a, b]}), from longer lists, or fewer samples", path=path, field="samples")
             src = [next(k for k, x in enumerate(spec["scenes"]) if x == t.source) for t in (samples[j], s)]
             if src[0] != src[1]:
-                raise InputError(f"scenes.{src[0]} and scenes.{src[1]} give the same samples (the same frames or "
-                                 "scene once overrides apply, with the same sensor): list it once", path=path,
-                                 field=f"scenes.{src[1]}")
+                raise InputError(f"{_entry_text(spec, src[0])} and {_entry_text(spec, src[1])} give the same samples "
+                                 "(the same frames or scene once overrides apply, with the same sensor): list it "
+                                 "once", path=path, field=_entry(spec, src[1]))
             raise InputError(f"samples {j} and {s.index} of the grid come out the same (overrides that change "
-                             "nothing): list each value once", path=path, field=f"scenes.{src[1]}")
+                             "nothing): list each value once", path=path, field=_entry(spec, src[1]))
     n_renders = len(set(rkeys))
     return Plan(samples, rkeys, ids, n_renders, f"{text}; {n_renders} render(s)")
 
@@ -826,6 +865,10 @@ def render_task(s: SampleSpec, rkey: str, out_root: str) -> str:
     folder = Path(out_root) / "renders" / rkey
     with _RENDER_LOCK:
         sc = _load_source_scene(s)
+        if "procedural" in s.source and sc.content_hash({"dataset_render": 1}) != rkey:
+            raise RuntimeError(f"this worker generates another scene for {s.source['procedural']} than the planner "
+                               f"did (render key {rkey}): its numpy {np.__version__} or render2spike differs; run the "
+                               "workers with the planner's versions")
         render_scene(sc, folder, progress=False, log=lambda *a, **k: None)
     return str(folder)
 
@@ -1264,7 +1307,7 @@ def build_dataset(spec, out, *, client=None, scheduler: str | None = None, worke
     out = Path(out)
     for i, sc in enumerate(spec["scenes"]):
         if "frames" in sc and same_or_inside(out, Path(sc["frames"])):
-            raise InputError(f"the output would sit inside the frames folder of scenes.{i}; choose another --out",
+            raise InputError(f"the output would sit inside the frames folder of {_entry(spec, i)}; choose another --out",
                              path=out, field="--out")
     pl = prepare(spec, spec_path, log)
     spec_hash = _hash(spec)

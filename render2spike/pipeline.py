@@ -250,7 +250,7 @@ def _spp_text(manifest: dict, spp: int) -> str:
     text = f"{spp} spp" if len(set(levels)) == 1 else f"{' / '.join(map(str, levels))} spp by refinement level"
     sr = manifest.get("static_reuse") or {}
     if sr.get("applied"):
-        frac = (sr.get("dynamic_fraction") or {}).get("mean")
-        text += (f" on the {100 * frac:.0f} % of pixels something moving covers, the rest from one static frame "
-                 f"at {sr['static_spp']} spp")
+        frac = (sr.get("dynamic_fraction") or {}).get("mean")  # None when this run rendered no keyframe
+        where = "the pixels" if frac is None else f"the {100 * frac:.0f} % of pixels"
+        text += f" on {where} something moving covers, the rest from one static frame at {sr['static_spp']} spp"
     return text

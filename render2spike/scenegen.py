@@ -18,16 +18,18 @@
   smooth noise), reflectance between a low of 0.02-0.2 and a high of 0.4-0.9; plain objects a reflectance
   of 0.05-0.9;
 * **motion**: a share ``still_fraction`` (default 0.2) of the scenes are still; in the others every
-  object translates across the image at a speed log-uniform in ``speed_px_per_ms`` (default 0.05-3 px/ms:
-  up to about 5 px per 32-interval window at T_r = 50 us), turning about a random axis at up to that rim
-  speed, and with probability ``camera_motion`` (default 0.5) the camera pans (translates) at such a speed
-  too. Image speeds are converted with the object's distance: 1 px/ms at ``d`` metres is 2.5 d m/s;
+  object turns about its centre and a random axis, its rim at an image speed log-uniform in
+  ``speed_px_per_ms`` (default 0.05-3 px/ms: up to about 5 px per 32-interval window at T_r = 50 us), and
+  its centre translates across the image at another such speed (a rim point then moves at up to the sum:
+  ``generator.fastest_px_per_ms``); with probability ``camera_motion`` (default 0.5) the camera pans
+  (translates) at such a speed too. Image speeds are converted with the distance: 1 px/ms at ``d`` metres is
+  2.5 d m/s;
 * **light**: a directional key light from a random direction of the front hemisphere (black body
   3000-6500 K), a dim sky (0.5-10 % of the key), and with probability 0.3 a point light near the camera;
   ``illuminance_lux`` log-uniform in ``lux`` (default 0.5-500), measured on the background's centre
   (a dataset's ``lux`` axis replaces it);
 * **render**: base keyframes at 1 kHz, refined up to the rate the fastest motion needs (at most 8 kHz),
-  ``max_spp`` 128, as the bundled scenes.
+  ``max_spp`` 128, as the bundled scenes; a render seed of its own.
 
 Rigid motion only: every object keeps its shape (the frozen launch moves meshes as instances).
 """
@@ -199,14 +201,17 @@ def generate_scene(seed: int, index: int = 0, options: dict | None = None) -> di
             obj["scale"] = round(size, 6)
         if not still:
             v = _speed(mot_rng, vmin, vmax)
-            fastest = max(fastest, v)
             ang = mot_rng.uniform(0, 2 * math.pi)
             sp = v * 1000.0 * px_m * d_cam
-            parts = [{"translate": {"velocity_m_s": _rounded([sp * math.cos(ang), sp * math.sin(ang), 0.0])}}]
-            spin = _speed(mot_rng, vmin, vmax) * 1000.0 * px_m * d_cam / max(size / 2, 1e-9)  # rim speed [rad/s]
-            parts.append({"rotate": {"axis": _rounded(_unit(mot_rng)), "omega_rad_s": round(
-                float(spin * mot_rng.choice([-1.0, 1.0])), 6), "center": list(obj["position"])}})
-            obj["motion"] = {"parametric": parts}
+            v_rim = _speed(mot_rng, vmin, vmax)  # the rim's image speed of the turn [px/ms]
+            spin = v_rim * 1000.0 * px_m * d_cam / max(size / 2, 1e-9)  # [rad/s]
+            fastest = max(fastest, v + v_rim)  # a rim point moves at up to both together
+            # turned about its own centre first (the pose at t = 0), then carried along: parametric motions apply
+            # in order, so the other order would turn it about where it started and send it on a growing orbit
+            obj["motion"] = {"parametric": [
+                {"rotate": {"axis": _rounded(_unit(mot_rng)), "omega_rad_s": round(
+                    float(spin * mot_rng.choice([-1.0, 1.0])), 6), "center": list(obj["position"])}},
+                {"translate": {"velocity_m_s": _rounded([sp * math.cos(ang), sp * math.sin(ang), 0.0])}}]}
         objects.append(obj)
 
     key_dir = np.array([light_rng.uniform(-0.7, 0.7), light_rng.uniform(-0.7, 0.7), -1.0])
@@ -237,7 +242,9 @@ def generate_scene(seed: int, index: int = 0, options: dict | None = None) -> di
         "objects": objects,
         "render": {"keyframe_rate_hz": 1000, "adaptive": {"enabled": True, "tolerance": 0.25,
                                                           "max_rate_hz": max_rate},
-                   "noise": {"max_spp": 128}, "max_depth": 3},
+                   "noise": {"max_spp": 128}, "max_depth": 3,
+                   # each scene its own render seed: scenes of a dataset share no sample pattern
+                   "seed": int(np.random.SeedSequence([int(seed), int(index), 0x5EED]).generate_state(1)[0])},
         "generator": {"tool": "render2spike.scenegen", "version": GENERATOR_VERSION, "seed": int(seed),
                       "index": int(index), "fastest_px_per_ms": round(fastest, 6), "still": still},
     }

@@ -58,7 +58,7 @@ def test_counts_speeds_light_and_textures_stay_in_their_ranges(drawn):
             if d["generator"]["still"]:
                 assert "motion" not in o
                 continue
-            vel = np.array(o["motion"]["parametric"][0]["translate"]["velocity_m_s"])
+            vel = np.array(o["motion"]["parametric"][1]["translate"]["velocity_m_s"])
             v_px_ms = np.linalg.norm(vel) / (1000.0 * px_m * (cam_z - o["position"][2]))
             assert vmin * (1 - 1e-4) <= v_px_ms <= vmax * (1 + 1e-4)
         if "motion" in d["camera"]:
@@ -74,7 +74,8 @@ def test_counts_speeds_light_and_textures_stay_in_their_ranges(drawn):
 def test_options_change_the_draws_and_bad_options_name_themselves():
     from sensor.errors import InputError
     fast = [generate_scene(0, i, {"speed_px_per_ms": [2.0, 3.0], "still_fraction": 0.0}) for i in range(20)]
-    assert all(2.0 * (1 - 1e-4) <= d["generator"]["fastest_px_per_ms"] <= 3.0 * (1 + 1e-4) for d in fast)
+    # a rim point moves at the translation and the turn's rim speed together, each drawn from [2, 3]
+    assert all(4.0 * (1 - 1e-4) <= d["generator"]["fastest_px_per_ms"] <= 6.0 * (1 + 1e-4) for d in fast)
     assert all(d["render"]["adaptive"]["max_rate_hz"] >= 4000 for d in fast)
     for bad, field in (({"speed_px_per_ms": [0, 1]}, "procedural.speed_px_per_ms"),
                        ({"objects": [3, 1]}, "procedural.objects"), ({"window": [300, 96]}, "procedural.window"),
@@ -128,3 +129,50 @@ def test_a_dataset_of_generated_scenes_renders_and_simulates(tmp_path):
     for sample in (tmp_path / "ds" / "samples").iterdir():
         made = json.loads((sample / "sample.json").read_text())
         assert "procedural" in json.dumps(made)  # the sample says which generated scene it is
+
+
+def test_objects_move_at_the_drawn_speed_and_turn_in_place():
+    """The object's own motion (builder.object_motion), sampled over the clip: its centre crosses the image at the
+    drawn translation speed, in a straight line (turning about its own centre), never faster than
+    generator.fastest_px_per_ms."""
+    from render2spike.render.builder import object_motion
+    px_m = 20e-6 / 8e-3
+    checked = 0
+    for i in range(60):
+        d = generate_scene(2, i)
+        if d["generator"]["still"]:
+            continue
+        cam_z = d["camera"]["position"][2]
+        for j, o in enumerate(d["objects"][1:], 1):
+            m = object_motion(o, f"objects.{j}.")
+            ts = np.linspace(0.0, d["duration_s"], 6)
+            c = np.array([m.matrix(t)[:3, 3] for t in ts])
+            step = np.linalg.norm(np.diff(c[:, :2], axis=0), axis=1)
+            v_img = step / np.diff(ts) / (1000.0 * px_m * (cam_z - o["position"][2]))  # px/ms
+            v_drawn = np.linalg.norm(o["motion"]["parametric"][1]["translate"]["velocity_m_s"]) / (
+                1000.0 * px_m * (cam_z - o["position"][2]))
+            assert np.allclose(v_img, v_drawn, rtol=1e-6, atol=1e-9)
+            assert np.allclose(c[:, 2], c[0, 2])  # no drift in depth
+            assert v_drawn <= d["generator"]["fastest_px_per_ms"] * (1 + 1e-6)
+            checked += 1
+    assert checked > 50
+
+
+def test_spec_errors_name_the_entry_in_the_file_and_a_loaded_spec_loads_again():
+    from render2spike.dataset import _hash, load_spec
+    from sensor.errors import InputError
+    with pytest.raises(InputError) as e:  # entries after a procedural one keep their own numbers
+        load_spec({"scenes": [{"procedural": {"count": 3}}, "rotating_disk", "rotating_disk"]})
+    assert e.value.field == "scenes.2" and "scenes.1 is the same scene" in str(e.value)
+    with pytest.raises(InputError) as e:
+        load_spec({"scenes": [{"procedural": {"count": 2, "seed": 1}}, {"procedural": {"count": 2, "seed": 1}}]})
+    assert e.value.field == "scenes.1" and "(generated scene 0)" in str(e.value)
+    a, _ = load_spec({"scenes": [{"procedural": {"count": 2}}, "rotating_disk"], "duration_s": [0.02, 0.05]})
+    assert a["scenes"][0]["procedural"]["options"] == {"duration_s": 0.05}  # the longest clip sizes the scene
+    b, _ = load_spec(a)
+    assert _hash(a) == _hash(b) and b["scene_entries"] == [[0, 0], [0, 1], [1, None]]
+
+
+def test_every_generated_scene_has_its_own_render_seed():
+    seeds = {generate_scene(0, i)["render"]["seed"] for i in range(50)}
+    assert len(seeds) == 50

@@ -187,6 +187,10 @@ def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log, reuse: "_Reuse")
     budget.setdefault("spp_levels", [spp] * (levels + 1))
     budget.setdefault("level_var", [1.0] * (levels + 1))
     folder.save_state()
+    st = budget.get("static") or {}
+    if rcfg["spp"] == "auto" and st.get("clipped"):
+        log(f"render: note: the static frame's budget asks for {st['spp_needed']} spp, more than {st['max_spp']} "
+            f"(8 x max_spp); its pixels' render noise will be ~{st['predicted_ratio']:.2f} of the shot noise")
     if rcfg["spp"] == "auto" and budget["clipped"]:
         log(f"render: note: the noise budget asks for {budget['spp_needed']} spp, more than max_spp = "
             f"{ncfg['max_spp']}; render noise will be ~{budget['predicted_ratio']:.2f} of the shot noise over "
@@ -314,20 +318,26 @@ class _Reuse:
 
     def budget_mask(self):
         """The pixels the dynamic region's budget is measured on: those dynamic at t = 0, or every pixel when
-        none is (a moving object that enters the view later: the whole frame stands in for it)."""
-        if not self.on or not self.dynamic_t0.any():
+        fewer than :data:`.reuse.MIN_BUDGET_PIXELS` are (a moving object that enters the view later, or covers a
+        handful of pixels: the whole frame stands in for it)."""
+        from .reuse import MIN_BUDGET_PIXELS
+        if not self.on or self.dynamic_t0.sum() < MIN_BUDGET_PIXELS:
             return None
         return self.dynamic_t0
 
     def static_budget(self, pairs: dict, rnd, scene: Scene) -> dict:
-        """The static frame's spp from the pilot pairs (:func:`.reuse.static_spp`)."""
+        """The static frame's spp from the pilot pairs (:func:`.reuse.static_spp`); a given spp (``--spp``) is
+        the static frame's too (each of its two renders)."""
         from .reuse import static_spp
         ncfg = scene.render["noise"]
         rs = rnd.rate_scale()
         top = pairs[max(pairs)]
         rate = 0.5 * (top[0] + top[1]) * rs + dark_current_mean_e(scene.profile)
-        return static_spp(pairs, ~self.dynamic_t0, rate, rs, int(ncfg["window_intervals"]),
-                          float(ncfg["target_ratio"]), int(ncfg["max_spp"]), rnd.effective_spp)
+        out = static_spp(pairs, ~self.dynamic_t0, rate, rs, int(ncfg["window_intervals"]),
+                         float(ncfg["target_ratio"]), int(ncfg["max_spp"]), rnd.effective_spp)
+        if scene.render["spp"] != "auto":
+            out.update(spp=int(scene.render["spp"]), given=True)
+        return out
 
     def start(self, budget: dict, var_floor, rnd) -> None:
         """Render the static frame (seeds from the render seed, so a resumed render makes the same one)."""
@@ -336,7 +346,9 @@ class _Reuse:
         from .reuse import StaticFrame
         spp = int(budget["static"]["spp"])
         n = len(rnd.launch_counts(spp))
-        seeds = np.random.SeedSequence([int(rnd.scene.render["seed"]), 0x57A71C]).generate_state(2 * n, np.uint32)
+        # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
+        seeds = np.random.SeedSequence([int(rnd.scene.render["seed"]), 0x57A71C, 1]).generate_state(2 * n,
+                                                                                                   np.uint32)
         self.static = StaticFrame(rnd, spp, seeds, ~self.dynamic_t0)
         self.rnd = rnd
         self._floor_raw = var_floor / rnd._factors[0] ** 2  # one keyframe's variance [raw Phi units^2], smoothed

@@ -23,8 +23,8 @@ and the sky light it blocks there. Those are checked by measurement instead: at 
 difference from the static frame, over its expected Monte Carlo variance, is averaged (``static_check``
 in the manifest; about 1 when the static region did not change; a warning names the excess).
 
-Noise budget (:func:`region_budgets`)
--------------------------------------
+Noise budget (:func:`static_spp`, and :func:`.noise.pilot_budget` over the dynamic pixels)
+------------------------------------------------------------------------------------------
 The render-noise ratio (:mod:`.noise`) of a window of ``W`` intervals is ``sqrt(W mean(v_eff) /
 mean(r + d))`` over a region, with ``v_eff`` the variance of the window's mean rate: ``v / K`` for a dynamic
 pixel (the errors of ``K`` keyframes average), but ``v`` itself for a static one (every keyframe carries the
@@ -33,8 +33,14 @@ means taken over the dynamic pixels at t = 0; the static frame's from the same p
 pixels, with ``K = 1`` and the pair's average (variance halved), no more than :data:`STATIC_MAX_FACTOR` x
 ``max_spp``.
 
+A static pixel's error is one pattern for the whole clip: each window of ``W`` intervals meets the target, but
+averages over many windows (a rate over the whole clip) do not shrink it as they shrink the errors of
+independent keyframes.
+
 Where it applies (:func:`reuse_obstacle`): the frozen launch, a camera that does not move, at least one moving
-object, none of them emitting light, and ``render.static_reuse`` not false in the scene.
+object, no object that emits light (an area light's soft shadows are not covered), no XML scene, and
+``render.static_reuse`` not false in the scene. Lights are the scene file's directional and point lights
+(their shadows covered) and its environment (checked by measurement).
 """
 
 from __future__ import annotations
@@ -72,6 +78,11 @@ def reuse_obstacle(scene, launch: str) -> str | None:
         return "nothing moves"
     if any("emitter" in obj for obj in movers):
         return "a moving object emits light, which reaches pixels the coverage test does not see"
+    if any("emitter" in obj for obj in scene.data["objects"]):
+        return ("an object emits light (an area light), whose soft shadows of the moving objects reach pixels the "
+                "coverage test does not see")
+    if "xml" in scene.data:
+        return "the scene's lights come from its XML file, which the coverage test does not see"
     return None
 
 
@@ -132,6 +143,11 @@ def region_means(frames: list[np.ndarray], mask: np.ndarray) -> float:
     """Mean over the pixels of ``mask`` of the variance of one of two independent renders ``frames``."""
     a, b = (np.asarray(f, np.float64)[mask] for f in frames)
     return float(np.mean((a - b) ** 2 / 2.0)) if a.size else 0.0
+
+
+#: the dynamic region's budget is measured on the pixels dynamic at t = 0 when there are at least this many (fewer
+#: would give a pair variance of a handful of pixels); else on the whole frame
+MIN_BUDGET_PIXELS = 64
 
 
 def static_spp(pilot: dict, mask: np.ndarray, rate_e: np.ndarray, rate_scale: float, window_intervals: int,

@@ -39,6 +39,9 @@ def test_reuse_applies_only_to_a_still_camera_with_movers_on_the_frozen_launch(w
     assert "static_reuse is false" in reuse_obstacle(off, "frozen")
     glow = dict(MOVER, emitter={"strength": 1.0})
     assert "emits light" in reuse_obstacle(_scene(write_scene, objects=BASE["objects"] + [glow]), "frozen")
+    panel = {"name": "panel", "shape": "rectangle", "size": [0.05, 0.05], "position": [0.1, 0, 0.5],
+             "emitter": {"strength": 1.0}}
+    assert "area light" in reuse_obstacle(_scene(write_scene, objects=BASE["objects"] + [MOVER, panel]), "frozen")
 
 
 def test_the_frames_hash_says_whether_a_static_frame_is_reused(write_scene):
@@ -183,3 +186,11 @@ def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path,
     res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
     assert res.n_rendered == res.n_frames - 2
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
+
+
+def test_a_given_spp_is_the_static_frames_too(tmp_path, write_scene):
+    from render2spike.render.job import render_scene
+    scene = _scene(write_scene, duration_s=0.003, render=dict(BASE["render"], spp=16, keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False}))
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    assert res.manifest["static_reuse"]["static_spp"] == 16 and res.manifest["spp_by_level"] == [16]
