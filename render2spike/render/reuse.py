@@ -37,8 +37,8 @@ A static pixel's error is one pattern for the whole clip: each window of ``W`` i
 averages over many windows (a rate over the whole clip) do not shrink it as they shrink the errors of
 independent keyframes.
 
-Where it applies (:func:`reuse_obstacle`): the frozen launch, a camera that does not move, at least one moving
-object, no object that emits light (an area light's soft shadows are not covered), no XML scene, and
+Where it applies (:func:`reuse_obstacle`): the frozen launch, a camera that does not move (where nothing moves at
+all, every keyframe is the static frame: the irradiance does not change), no object that emits light (an area light's soft shadows are not covered), no XML scene, and
 ``render.static_reuse`` not false in the scene. Lights are the scene file's directional and point lights
 (their shadows covered) and its environment (checked by measurement).
 """
@@ -74,8 +74,6 @@ def reuse_obstacle(scene, launch: str) -> str | None:
         return "the camera moves, so no pixel stays still"
     movers = [obj for i, obj in enumerate(scene.data["objects"])
               if not object_motion(obj, f"objects.{i}.").is_static]
-    if not movers:
-        return "nothing moves"
     if any("emitter" in obj for obj in movers):
         return "a moving object emits light, which reaches pixels the coverage test does not see"
     if any("emitter" in obj for obj in scene.data["objects"]):
@@ -114,6 +112,10 @@ class Coverage:
         self._pos = (mi.Float((px.ravel() / w).astype(np.float32)), mi.Float((py.ravel() / h).astype(np.float32)))
         self._n = SUBPIXEL * SUBPIXEL
 
+    @property
+    def anything_moves(self) -> bool:
+        return bool(set(self.rnd._moving) - {"camera"})
+
     def _moving_hit(self, si):
         """True where ``si`` is a valid hit on none of the static shapes (so on a moving one)."""
         mi = self.mi
@@ -124,6 +126,8 @@ class Coverage:
 
     def __call__(self, t_s: float) -> np.ndarray:
         rnd, mi = self.rnd, self.mi
+        if not self.anything_moves:  # a still scene: every pixel keeps its value
+            return np.zeros((rnd.height, rnd.width), bool)
         rnd.set_time(t_s)
         fl = rnd.frame_launch
         m = mi.Float([float(x) for x in np.asarray(rnd._cam_m, np.float32).reshape(16)])

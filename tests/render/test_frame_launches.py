@@ -175,7 +175,8 @@ def test_render_job_reuses_the_pilot_render_for_its_first_verification_only_with
     import copy
     from tests.render.conftest import BASE
     render = copy.deepcopy(BASE["render"])
-    render.update(spp=spp, adaptive={"enabled": False})
+    # whole keyframes (a still scene would otherwise reuse one static frame, which has no pilot render to take)
+    render.update(spp=spp, adaptive={"enabled": False}, static_reuse=False)
     sc = load_scene(write_scene({"render": render, "duration_s": 0.01}))
     frames = {"n": 0}
     orig = rmod.SceneRenderer.render_frame

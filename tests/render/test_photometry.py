@@ -50,7 +50,9 @@ def test_lambertian_plane_E_and_Phi(tmp_path, write_scene, z, launch):
     from render2spike.render.scene import load_scene
     from sensor.io.frames import read_frames
 
-    sc = load_scene(write_scene(), ["render.spp=64"])
+    # whole keyframes: the three frames of this still scene are three independent renders (with static-region
+    # reuse they would be one static frame, three times)
+    sc = load_scene(write_scene(), ["render.spp=64", "render.static_reuse=false"])
     res = render_scene(sc, tmp_path / "frames", progress=False, log=lambda *a: None, launch=launch)
     seq = read_frames(res.out)
     assert len(seq) == 3  # static scene: the 200 Hz base grid over 10 ms, no refinement

@@ -29,22 +29,22 @@ def test_resume_after_interrupt(tmp_path, write_scene, monkeypatch):
         return orig(self, *a, **k)
     monkeypatch.setattr(rmod.SceneRenderer, "render_frame", flaky)
     with pytest.raises(KeyboardInterrupt):
-        render_scene(load_scene(p, ["render.spp=8"]), out, progress=False, log=lambda *a: None)
+        render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"]), out, progress=False, log=lambda *a: None)
     state = load_state(out)
     assert len(state["frames"]) == 2 and not (out / "frames.json").exists()
     done = {rec["file"]: (out / rec["file"]).read_bytes() for rec in state["frames"].values()}
     monkeypatch.setattr(rmod.SceneRenderer, "render_frame", orig)
 
-    res = render_scene(load_scene(p, ["render.spp=8"]), out, progress=False, log=lambda *a: None)
+    res = render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"]), out, progress=False, log=lambda *a: None)
     assert res.n_frames == 5 and res.n_rendered == 3  # only the missing frames were rendered
     for name, data in done.items():
         assert (out / name).read_bytes() == data  # finished frames kept untouched
-    again = render_scene(load_scene(p, ["render.spp=8"]), out, progress=False, log=lambda *a: None)
+    again = render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"]), out, progress=False, log=lambda *a: None)
     assert again.up_to_date and again.n_rendered == 0
 
     with pytest.raises(InputError, match="different scene or settings"):
-        render_scene(load_scene(p, ["render.spp=8"], lux=7.0), out, progress=False, log=lambda *a: None)
-    res2 = render_scene(load_scene(p, ["render.spp=8"], lux=7.0), out, overwrite=True, progress=False,
+        render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"], lux=7.0), out, progress=False, log=lambda *a: None)
+    res2 = render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"], lux=7.0), out, overwrite=True, progress=False,
                         log=lambda *a: None)
     assert res2.n_rendered == 5
     from sensor.io.frames import read_frames
@@ -104,7 +104,7 @@ def test_resumed_render_writes_the_same_files_as_an_uninterrupted_one(tmp_path, 
 
     p = write_scene({"duration_s": 0.02}, name="s.yaml")
     quiet = dict(progress=False, log=lambda *a: None)
-    whole = render_scene(load_scene(p, ["render.spp=8"]), tmp_path / "whole", **quiet)
+    whole = render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"]), tmp_path / "whole", **quiet)
     orig = rmod.SceneRenderer.render_frame
     calls = {"n": 0}
 
@@ -115,9 +115,9 @@ def test_resumed_render_writes_the_same_files_as_an_uninterrupted_one(tmp_path, 
         return orig(self, *a, **k)
     monkeypatch.setattr(rmod.SceneRenderer, "render_frame", flaky)
     with pytest.raises(KeyboardInterrupt):
-        render_scene(load_scene(p, ["render.spp=8"]), tmp_path / "resumed", **quiet)
+        render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"]), tmp_path / "resumed", **quiet)
     monkeypatch.setattr(rmod.SceneRenderer, "render_frame", orig)
-    res = render_scene(load_scene(p, ["render.spp=8"]), tmp_path / "resumed", **quiet)
+    res = render_scene(load_scene(p, ["render.spp=8", "render.static_reuse=false"]), tmp_path / "resumed", **quiet)
     assert res.n_rendered == whole.n_frames - 2 and res.n_frames == whole.n_frames
     names = sorted(f.name for f in (tmp_path / "whole").glob("*.exr"))
     assert len(names) == whole.n_frames

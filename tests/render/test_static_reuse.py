@@ -32,7 +32,7 @@ def test_reuse_applies_only_to_a_still_camera_with_movers_on_the_frozen_launch(w
     assert reuse_obstacle(moving, "frozen") is None
     assert "film launch" in reuse_obstacle(moving, "film")
     still = _scene(write_scene, objects=BASE["objects"])
-    assert reuse_obstacle(still, "frozen") == "nothing moves"
+    assert reuse_obstacle(still, "frozen") is None  # every keyframe is the static frame
     cam = dict(BASE["camera"], motion={"parametric": [{"translate": {"velocity_m_s": [0.1, 0, 0]}}]})
     assert "camera moves" in reuse_obstacle(_scene(write_scene, camera=cam), "frozen")
     off = _scene(write_scene, render=dict(BASE["render"], static_reuse=False))
@@ -194,3 +194,17 @@ def test_a_given_spp_is_the_static_frames_too(tmp_path, write_scene):
                                                               adaptive={"enabled": False}))
     res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
     assert res.manifest["static_reuse"]["static_spp"] == 16 and res.manifest["spp_by_level"] == [16]
+
+
+def test_a_still_scene_renders_one_static_frame_and_every_keyframe_is_it(tmp_path, write_scene):
+    from render2spike.render.job import render_scene
+    from sensor.io.frames import read_frames
+    scene = _scene(write_scene, objects=BASE["objects"], duration_s=0.01)
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    sr = res.manifest["static_reuse"]
+    assert sr["applied"] and sr["dynamic_fraction"]["max"] == 0.0
+    assert res.manifest["temporal_sampling"]["n_refined"] == 0  # identical keyframes: nothing to refine
+    seq = read_frames(tmp_path / "f")
+    first = seq.read_phi(0)
+    assert all(np.array_equal(seq.read_phi(i), first) for i in range(len(seq)))
+    assert all(c["z2_mean"] < c["limit"] for c in sr["static_check"])
