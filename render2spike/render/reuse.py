@@ -37,9 +37,9 @@ A static pixel's error is one pattern for the whole clip: each window of ``W`` i
 averages over many windows (a rate over the whole clip) do not shrink it as they shrink the errors of
 independent keyframes.
 
-Where it applies (:func:`reuse_obstacle`): the frozen launch, a camera that does not move (where nothing moves at
-all, every keyframe is the static frame: the irradiance does not change), no object that emits light (an area light's soft shadows are not covered), no XML scene, and
-``render.static_reuse`` not false in the scene. Lights are the scene file's directional and point lights
+Where it applies (:func:`reuse_obstacle`): the frozen launch, a camera that does not move (where nothing moves
+at all, every keyframe is the static frame: the irradiance does not change), no object that emits light (an
+area light's soft shadows are not covered), no XML scene, and ``render.static_reuse`` not false in the scene. Lights are the scene file's directional and point lights
 (their shadows covered) and its environment (checked by measurement).
 """
 
