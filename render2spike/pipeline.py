@@ -122,7 +122,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     from sensor.errors import InputError
     from sensor.io.spikefile import write_spikes
 
-    from .render.job import render_scene
+    from .render.job import render_scene, spp_text
     from .render.launch import check_launch, launch_taken, refusal_hint
     from .render.scene import load_scene
 
@@ -231,7 +231,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
 | light level (reference) | {sc.illuminance_lux:g} lux |
 | clip | {sc.duration_s:g} s = {T} intervals of {prof.interval_s * 1e6:g} us |
 | sensor | {prof.name}, {H} x {W} px, threshold {prof.threshold_e:g} e- |
-| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {_spp_text(m, res.spp)}, Mitsuba `{m.get("variant")}`, {m.get("launch", "film")} launch |
+| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {spp_text(m, res.spp)}, Mitsuba `{m.get("variant")}`, {m.get("launch", "film")} launch |
 | render noise / shot noise | {summary['render_noise_ratio_mean'] if summary['render_noise_ratio_mean'] is None else f"{summary['render_noise_ratio_mean']:.3f}"} (RMS over {(m.get('render_noise_ratio') or {}).get('window_intervals')} intervals) |
 | mean photoelectrons | {exp_e:.3g} e- per pixel per interval |
 | spikes | {n_spk} ({rate_per_interval:.4f} per pixel per interval = {summary['spike_rate_hz']:.1f} Hz) |
@@ -243,14 +243,3 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
     write_text_atomic(out / "summary.md", md)
     return summary
 
-
-def _spp_text(manifest: dict, spp: int) -> str:
-    """The frames' samples per pixel as the summary says them: by refinement level, and the static frame's."""
-    levels = manifest.get("spp_by_level") or [spp]
-    text = f"{spp} spp" if len(set(levels)) == 1 else f"{' / '.join(map(str, levels))} spp by refinement level"
-    sr = manifest.get("static_reuse") or {}
-    if sr.get("applied"):
-        frac = (sr.get("dynamic_fraction") or {}).get("mean")  # None when this run rendered no keyframe
-        where = "the pixels" if frac is None else f"the {100 * frac:.0f} % of pixels"
-        text += f" on {where} something moving covers, the rest from one static frame at {sr['static_spp']} spp"
-    return text

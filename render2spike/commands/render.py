@@ -134,7 +134,9 @@ def run(args) -> int:
                        launch=args.launch)
     m = res.manifest
     ts = m.get("temporal_sampling", {})
-    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, {m.get('launch')} launch; {res.spp} spp; "
+    from render2spike.render.job import spp_text
+    print(f"render: {res.n_frames} frames ({res.n_rendered} rendered now) -> {res.out}; {m.get('variant')}, "
+          f"{m.get('launch')} launch; {spp_text(m, res.spp)}; "
           f"{ts.get('n_refined', 0)} added by adaptive refinement; render/shot noise "
           f"{(m.get('render_noise_ratio') or {}).get('mean', float('nan')):.3f}; {res.seconds:.1f} s")
     return 0

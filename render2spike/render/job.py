@@ -379,3 +379,15 @@ class _Reuse:
                                      "mean": float(np.mean(self.dyn_fractions)) if self.dyn_fractions else None,
                                      "max": float(np.max(self.dyn_fractions)) if self.dyn_fractions else None},
                 "static_check": self.checks}
+
+
+def spp_text(manifest: dict, spp: int) -> str:
+    """The frames' samples per pixel as the summary says them: by refinement level, and the static frame's."""
+    levels = manifest.get("spp_by_level") or [spp]
+    text = f"{spp} spp" if len(set(levels)) == 1 else f"{' / '.join(map(str, levels))} spp by refinement level"
+    sr = manifest.get("static_reuse") or {}
+    if sr.get("applied"):
+        frac = (sr.get("dynamic_fraction") or {}).get("mean")  # None when this run rendered no keyframe
+        where = "the pixels" if frac is None else f"the {100 * frac:.0f} % of pixels"
+        text += f" on {where} something moving covers, the rest from one static frame at {sr['static_spp']} spp"
+    return text
