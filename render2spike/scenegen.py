@@ -22,8 +22,8 @@
   ``speed_px_per_ms`` (default 0.05-3 px/ms: up to about 5 px per 32-interval window at T_r = 50 us), and
   its centre translates across the image at another such speed (a rim point then moves at up to the sum:
   ``generator.fastest_px_per_ms``); with probability ``camera_motion`` (default 0.5) the camera pans
-  (translates) at such a speed too. Image speeds are converted with the distance: 1 px/ms at ``d`` metres is
-  2.5 d m/s;
+  (translates) at such a speed too. Image speeds are converted with the distance and the profile's pitch
+  (:func:`metres_per_pixel_at_1m`): 1 px/ms at ``d`` metres is 2.5 d m/s for a 20 um pitch;
 * **light**: a directional key light from a random direction of the front hemisphere (black body
   3000-6500 K), a dim sky (0.5-10 % of the key), and with probability 0.3 a point light near the camera;
   ``illuminance_lux`` log-uniform in ``lux`` (default 0.5-500), measured on the background's centre
@@ -52,7 +52,7 @@ PHOTOS = ("astronaut", "brick", "camera", "cat", "chelsea", "clock", "coffee", "
 PROCEDURAL = ("checker", "stripes", "noise")
 PRIMITIVES = ("sphere", "cube", "cylinder", "disk", "rectangle")
 MESHES = ("torus", "blob", "cone", "capsule")
-#: [m] per pixel at 1 m for the default optics: 20 um pitch / 8 mm focal length
+#: the generated camera's focal length [mm] (with vidar-default's 20 um pitch: 2.5 mm per pixel at 1 m)
 FOCAL_LENGTH_MM = 8.0
 DEFAULTS = {"objects": [1, 4], "speed_px_per_ms": [0.05, 3.0], "still_fraction": 0.2, "camera_motion": 0.5,
             "lux": [0.5, 500.0], "window": [64, 96], "profile": "vidar-default", "distance_m": [0.8, 3.0],
@@ -148,7 +148,7 @@ def generate_scene(seed: int, index: int = 0, options: dict | None = None) -> di
     ss = np.random.SeedSequence([int(seed), int(index), GENERATOR_VERSION])
     cam_rng, bg_rng, obj_rng, mot_rng, light_rng = (np.random.default_rng(s) for s in ss.spawn(5))
     h, w = (int(x) for x in o["window"])
-    px_m = 20e-6 / (FOCAL_LENGTH_MM * 1e-3)  # [m] per pixel at 1 m (vidar pitch over the focal length)
+    px_m = metres_per_pixel_at_1m(o["profile"])  # [m] per pixel at 1 m
     lo_d, hi_d = o["distance_m"]
     dist = float(math.exp(cam_rng.uniform(math.log(lo_d), math.log(hi_d))))
     duration = float(o["duration_s"])
@@ -251,18 +251,26 @@ def generate_scene(seed: int, index: int = 0, options: dict | None = None) -> di
 
 
 @functools.lru_cache(maxsize=16)
-def _sensor_size(profile: str) -> tuple[int, int]:
+def _sensor(profile: str) -> tuple[int, int, float]:
+    """(height, width [px], pixel pitch [m]) of ``profile``."""
     from sensor.profile import SensorProfile
     try:
         p = SensorProfile.load(profile)
     except InputError as exc:
         raise InputError(str(exc), field="procedural.profile") from None
-    return int(p.height), int(p.width)
+    return int(p.height), int(p.width), float(p.pixel_pitch_m)
+
+
+def metres_per_pixel_at_1m(profile: str) -> float:
+    """The image scale of the generator's optics: ``profile``'s pixel pitch over the focal length [m per px at
+    1 m]; an image speed of 1 px/ms at ``d`` metres is ``1000 d`` times it in m/s."""
+    from sensor.units import mm_to_m
+    return _sensor(profile)[2] / float(mm_to_m(FOCAL_LENGTH_MM))
 
 
 def centred_window(profile: str, height: int, width: int) -> list[int]:
     """``[row, col, height, width]`` of a window of that size centred on ``profile``'s sensor."""
-    ph, pw = _sensor_size(profile)
+    ph, pw, _ = _sensor(profile)
     if height > ph or width > pw:
         raise InputError(f"a {height} x {width} window does not fit the {ph} x {pw} sensor of '{profile}'",
                          field="procedural.window")
