@@ -138,7 +138,8 @@ def write_loss_files(out_dir: Path, rows: list[dict]) -> None:
 
 def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None = None, resume: bool = False,
           init_checkpoint=None, add_head: bool = False, head_sigmas=None, head_windows=None,
-          head_motion: bool | None = None, run_info: dict | None = None, progress: bool = True) -> dict:
+          head_motion: bool | None = None, head_edges: str | None = None, run_info: dict | None = None,
+          progress: bool = True) -> dict:
     """Train (or resume) an RSIR-architecture network on ``dataset``; returns a summary dict.
 
     Parameters
@@ -172,6 +173,9 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
         (``RSIRConfig.head_windows``, ``RSIRConfig.head_motion``); as for
         ``head_sigmas``, a head of the checkpoint is replaced. The new head
         starts from the old one (:func:`_with_head`).
+    head_edges : str, optional
+        With ``add_head``: the border mode of the bank's Gaussians
+        (``RSIRConfig.head_edges``); a new head gets ``"symmetric"`` unless told.
     run_info : dict
         Stored in config.json (data spec, noise model, command).
     """
@@ -222,9 +226,9 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
             if model.config.normalise == "fixed" and cfg.train_only != "head":
                 # adopt the new data's light level (the weights stay); not when the network is to stay as it is
                 model.config.intensity_scale = estimate_intensity_scale(dataset)
-            new_bank = head_sigmas is not None or head_windows is not None or head_motion is not None
+            new_bank = any(v is not None for v in (head_sigmas, head_windows, head_motion, head_edges))
             if add_head and (model.head is None or new_bank):  # the network plus a new head
-                model = _with_head(model, cfg.seed, device, head_sigmas, head_windows, head_motion)
+                model = _with_head(model, cfg.seed, device, head_sigmas, head_windows, head_motion, head_edges)
         else:
             nc = net_config or RSIRConfig.tiny()
             if nc.normalise == "fixed" and nc.intensity_scale == 1.0:
@@ -334,14 +338,17 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
 NEW_CANDIDATE_LOGIT = -8.0
 
 
-def _with_head(model, seed: int, device, head_sigmas=None, head_windows=None, head_motion=None):
+def _with_head(model, seed: int, device, head_sigmas=None, head_windows=None, head_motion=None, head_edges=None):
     """A copy of ``model`` with a new output head (same weights otherwise).
 
     ``head_sigmas``, ``head_windows``, ``head_motion``: the new bank (default the
-    config's). The head is seeded by ``seed``; where ``model`` already has a head
-    of the same CNN width, the new one starts as it: the weights of the
-    candidates both banks hold (same window count and width), the light-level and
-    rate inputs and the correction are copied, new inputs start at zero weight
+    config's); ``head_edges``: its Gaussians' border mode (default ``"symmetric"``,
+    whatever the old head's); the head's loss and its light-level input are the current defaults
+    (``RSIRConfig.head_loss``, ``head_light_level``). The head is seeded by ``seed``; where ``model``
+    already has a head of the same CNN width, the new one starts as it: the weights of the
+    candidates both banks hold (same window count and width), the mean-count level and
+    rate inputs, the light level when both have it, and the correction are copied; other
+    inputs (the motion cues among them) start at zero weight
     and new candidates at logit :data:`NEW_CANDIDATE_LOGIT`, so the output
     starts (nearly) at the old head's and training adds what the new candidates
     are worth.
@@ -354,6 +361,9 @@ def _with_head(model, seed: int, device, head_sigmas=None, head_windows=None, he
         extra["head_windows"] = list(head_windows)
     if head_motion is not None:
         extra["head_motion"] = bool(head_motion)
+    extra["head_edges"] = str(head_edges or "symmetric")
+    extra["head_loss"] = RSIRConfig.head_loss  # a new head: the current default loss and inputs
+    extra["head_light_level"] = RSIRConfig.head_light_level
     cfg = RSIRConfig.from_dict({**model.config.to_dict(), "head": True, **extra})
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
@@ -388,6 +398,8 @@ def _transplant_head(old, new) -> None:
         w0 = torch.zeros_like(n[0].weight)
         w0[:, dst] = o[0].weight[:, src]
         w0[:, Kn:Kn + 2] = o[0].weight[:, Ko:Ko + 2]  # level, rate
+        if old.config.head_light_level and new.config.head_light_level:
+            w0[:, -1] = o[0].weight[:, -1]  # the light level (the last cue of both)
         n[0].weight.copy_(w0)
         n[0].bias.copy_(o[0].bias)
         n[2].weight.copy_(o[2].weight)

@@ -47,7 +47,7 @@ from .head import (BankHead, GaussianBlur, central_windows, classic_bank, crossi
 from .layers import (AttentionBlock, Denoiser, HaarDWT, HaarIDWT, LearnedDWT, LearnedIDWT, NoiseInverse, Refine,
                      ResidualBlock, TemporalFusion, WindowAttention, haar_dwt, haar_idwt, wavelet_dwt, wavelet_idwt,
                      window_partition, window_reverse)
-from .model import RSIRNet, count_parameters, rsir_loss
+from .model import RSIRNet, count_parameters, head_psnr_loss, rsir_loss
 
 __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "load_checkpoint", "pick_device", "save_checkpoint",
            "PRESETS", "RSIRConfig",
@@ -56,4 +56,4 @@ __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "load_checkpoint", "pick_d
            "AttentionBlock", "Denoiser", "HaarDWT", "HaarIDWT", "LearnedDWT", "LearnedIDWT", "NoiseInverse", "Refine",
            "ResidualBlock", "TemporalFusion", "WindowAttention", "haar_dwt", "haar_idwt", "wavelet_dwt",
            "wavelet_idwt", "window_partition", "window_reverse",
-           "RSIRNet", "count_parameters", "rsir_loss"]
+           "RSIRNet", "count_parameters", "head_psnr_loss", "rsir_loss"]

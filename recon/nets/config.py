@@ -10,6 +10,10 @@ from sensor.errors import InputError, UnknownMethodError
 
 #: RSIRConfig presets of ``render2spike train --size`` (see :meth:`RSIRConfig.preset`)
 PRESETS = ("tiny", "paper", "rsir")
+#: edge modes of the head bank's Gaussians (:func:`recon.nets.gaussian_blur`)
+BLUR_EDGES = ("replicate", "symmetric")
+#: training losses of the head's image (:func:`recon.nets.rsir_loss`)
+HEAD_LOSSES = ("l1", "psnr")
 
 
 @dataclass
@@ -76,6 +80,22 @@ class RSIRConfig:
     also sees, per short window, :func:`recon.nets.motion_cue` (how far the
     short-window rate departs from the all-window rate, in units of its shot
     noise).
+
+    ``head_edges``: how the bank's Gaussians treat the image border
+    (:func:`recon.nets.gaussian_blur`): ``"symmetric"`` (mirrored, as the
+    classic baseline smooths) or ``"replicate"`` (the edge pixel repeated; what
+    a checkpoint whose config does not name it was trained with, see
+    :meth:`from_dict`).
+
+    ``head_loss``: the training loss of the head's image, ``"psnr"`` (minus the
+    mean PSNR as ``evaluate`` scores it, every light level weighed alike; see
+    :func:`recon.nets.head_psnr_loss`) or ``"l1"`` (L1 in the network's scaled
+    units; a checkpoint whose config does not name it was trained with it).
+
+    ``head_light_level``: the head also sees the item's light level, ``log10``
+    of its mean count of light (the excess over the dark floor; see
+    :meth:`recon.nets.RSIRNet.light_level`), besides the mean count of all its
+    spikes; a checkpoint whose config does not name it has no such input.
     """
 
     n_windows: int = 10
@@ -106,6 +126,9 @@ class RSIRConfig:
     head_route_weight: float = 0.02
     head_windows: tuple = (0,)
     head_motion: bool = False
+    head_edges: str = "symmetric"
+    head_loss: str = "psnr"
+    head_light_level: bool = True
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -120,6 +143,12 @@ class RSIRConfig:
             raise InputError(f"head_windows must list distinct window counts >= 0 (0 = all windows), got "
                              f"{self.head_windows}", field="head_windows")
         self.head_windows = tuple(int(v) for v in hw)
+        if self.head_loss not in HEAD_LOSSES:
+            raise InputError(f"head_loss must be one of {list(HEAD_LOSSES)}, got '{self.head_loss}'",
+                             field="head_loss")
+        if self.head_edges not in BLUR_EDGES:
+            raise InputError(f"head_edges must be one of {list(BLUR_EDGES)}, got '{self.head_edges}'",
+                             field="head_edges")
         if self.head_motion and not any(0 < v < self.n_windows for v in self.head_windows):
             raise InputError(f"head_motion compares short windows with all {self.n_windows}: head_windows needs "
                              f"an entry between 1 and {self.n_windows - 1}, got {self.head_windows}",
@@ -168,6 +197,9 @@ class RSIRConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RSIRConfig":
+        """The config of a stored dict; one without ``head_edges`` / ``head_loss`` / ``head_light_level``
+        predates the setting: ``"replicate"`` / ``"l1"`` / False."""
+        d = {"head_edges": "replicate", "head_loss": "l1", "head_light_level": False, **d}
         names = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:

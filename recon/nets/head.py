@@ -18,37 +18,69 @@ from torch import nn
 
 from sensor.errors import InputError
 
+from .config import BLUR_EDGES
 from .layers import _check_4d
 
 
-def gaussian_blur(x: "torch.Tensor", sigma: float) -> "torch.Tensor":
-    """Separable Gaussian filter of ``sigma`` pixels on (B, C, H, W), replicate edges; ``sigma <= 0``: ``x``.
+def _symmetric_index(n: int, r: int, device) -> "torch.Tensor":
+    """Indices of a length-``n`` axis padded by ``r`` on each side, mirrored about the edges (d c b a | a b c d).
 
-    The kernel is truncated at ``ceil(3 sigma)`` pixels and normalised to sum 1.
+    Any ``r`` (also ``r >= n``: the mirror repeats with period ``2 n``), as scipy.ndimage's ``reflect`` mode.
+    """
+    i = torch.arange(-r, n + r, device=device) % (2 * n)
+    return torch.where(i >= n, 2 * n - 1 - i, i)
+
+
+def gaussian_blur(x: "torch.Tensor", sigma: float, edges: str = "replicate") -> "torch.Tensor":
+    """Separable Gaussian filter of ``sigma`` pixels on (B, C, H, W); ``sigma <= 0``: ``x``.
+
+    ``edges``:
+
+    * ``"replicate"``: the edge pixel repeated; the kernel truncated at ``ceil(3 sigma)`` pixels.
+    * ``"symmetric"``: the image mirrored about its edges (d c b a | a b c d) and the kernel truncated at
+      ``int(4 sigma + 0.5)`` pixels: :func:`scipy.ndimage.gaussian_filter`'s defaults (``mode="reflect"``,
+      ``truncate=4``), i.e. the smoothing of the classic baseline (:func:`recon.baselines.gaussian_denoise`).
+      Near an edge it averages as many pixels as inside; replicating instead gives the one edge pixel the
+      weight of the kernel's whole outer tail (about half of it at the border), which for wide kernels in
+      dim light turns the image's border into noise.
+
+    The kernel is normalised to sum 1.
     """
     _check_4d(x, "x")
+    if edges not in BLUR_EDGES:
+        raise InputError(f"edges must be one of {list(BLUR_EDGES)}, got '{edges}'", field="edges")
     if sigma <= 0:
         return x
-    r = max(int(math.ceil(3.0 * float(sigma))), 1)
+    if edges == "replicate":
+        r = max(int(math.ceil(3.0 * float(sigma))), 1)
+    else:
+        r = max(int(4.0 * float(sigma) + 0.5), 1)
     t = torch.arange(-r, r + 1, device=x.device, dtype=x.dtype)
     k = torch.exp(-0.5 * (t / float(sigma)) ** 2)
     k = k / k.sum()
     C = x.shape[1]
-    y = F.pad(x, (r, r, 0, 0), mode="replicate")
+    if edges == "replicate":
+        y = F.pad(x, (r, r, 0, 0), mode="replicate")
+    else:
+        y = x.index_select(3, _symmetric_index(x.shape[3], r, x.device))
     y = F.conv2d(y, k.view(1, 1, 1, -1).expand(C, 1, 1, -1), groups=C)
-    y = F.pad(y, (0, 0, r, r), mode="replicate")
+    if edges == "replicate":
+        y = F.pad(y, (0, 0, r, r), mode="replicate")
+    else:
+        y = y.index_select(2, _symmetric_index(y.shape[2], r, y.device))
     return F.conv2d(y, k.view(1, 1, -1, 1).expand(C, 1, -1, 1), groups=C)
 
 
 class GaussianBlur(nn.Module):
     """Module form of :func:`gaussian_blur`."""
 
-    def __init__(self, sigma: float):
+    def __init__(self, sigma: float, edges: str = "replicate"):
         super().__init__()
         self.sigma = float(sigma)
+        self.edges = str(edges)
 
     def forward(self, x):
-        return gaussian_blur(x, self.sigma)
+        return gaussian_blur(x, self.sigma, self.edges)
 
 
 def central_windows(n_total: int, n: int) -> tuple[int, int]:
@@ -77,7 +109,7 @@ def support_windows(n: int, n_total: int, trained_window: int, window: int) -> i
 
 
 def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas,
-                 head_windows=(0,)) -> "torch.Tensor":
+                 head_windows=(0,), edges: str = "replicate") -> "torch.Tensor":
     """The classic estimates the output head chooses among: (B, len(head_windows) * len(sigmas), H, W), target units.
 
     For each entry ``n`` of ``head_windows`` (window-major order), the TFP over
@@ -85,7 +117,8 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas,
     (:func:`central_windows`; ``n = 0``: all of them), its excess over each
     pixel's dark floor (expected dark spikes per interval) smoothed by a
     Gaussian of each width in ``sigmas`` [pixels] with hot pixels left out
-    (normalised convolution, as :func:`recon.baselines.smooth_rate`; width 0
+    (normalised convolution, as :func:`recon.baselines.smooth_rate`, with the
+    :func:`gaussian_blur` ``edges``; ``"symmetric"`` smooths as that baseline does; width 0
     keeps each pixel's own value, hot pixels take their neighbours' at 1
     pixel), then turned into light: with dark events, the dark level added back
     and the rate inverted with :func:`crossing_light`; with dark current as a
@@ -124,7 +157,7 @@ def classic_bank(windows: "torch.Tensor", maps: "torch.Tensor | None", sigmas,
         xw = x * w
 
         def smooth(sig, xw=xw):
-            return gaussian_blur(xw, sig) / gaussian_blur(w, sig).clamp_min(1e-6)
+            return gaussian_blur(xw, sig, edges) / gaussian_blur(w, sig, edges).clamp_min(1e-6)
 
         for sig in sigmas:
             xs = torch.where(w > 0, x, smooth(1.0)) if sig <= 0 else smooth(sig)

@@ -55,9 +55,11 @@ class RSIRNet(nn.Module):
 
     @property
     def n_cues(self) -> int:
-        """Motion-cue channels the output head sees (:func:`recon.nets.motion_cue`)."""
+        """Cue channels the output head sees: the motion cues (:func:`recon.nets.motion_cue`), then the light
+        level (:meth:`light_level`) with ``head_light_level``."""
         cfg = self.config
-        return sum(1 for n in cfg.head_windows if 0 < n < cfg.n_windows) if cfg.head_motion else 0
+        motion = sum(1 for n in cfg.head_windows if 0 < n < cfg.n_windows) if cfg.head_motion else 0
+        return motion + int(bool(cfg.head_light_level))
 
     @property
     def multiple(self) -> int:
@@ -107,6 +109,24 @@ class RSIRNet(nn.Module):
         return torch.log10((windows.detach().mean(dim=(1, 2, 3), keepdim=True)
                             * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
 
+    def light_level(self, windows, maps=None) -> "torch.Tensor":
+        """(B, 1, 1, 1): ``log10`` of the mean *light* count per pixel over the trained input length.
+
+        The all-window rate's excess over each pixel's dark floor (``maps`` channel 0; hot pixels, channel 2,
+        left out), averaged over the pixels and times ``n_windows * window``, floored at 1e-3. In dim light
+        the dark spikes make :meth:`level` nearly constant (0.5, 1 and 2 lux differ by under 3 % in the
+        mean count of the default sensor) while the light count still doubles with the light; without maps
+        it is :meth:`level`.
+        """
+        r = windows.detach().mean(dim=1, keepdim=True)
+        if maps is None:
+            x, w = r, torch.ones_like(r)
+        else:
+            x = r - maps[:, 0:1].to(r.dtype)
+            w = (1.0 - (maps[:, 2:3] > 0).to(r.dtype)) if maps.shape[1] > 2 else torch.ones_like(r)
+        mean = (x * w).sum(dim=(1, 2, 3), keepdim=True) / w.sum(dim=(1, 2, 3), keepdim=True).clamp_min(1.0)
+        return torch.log10((mean * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
+
     def forward(self, windows, maps=None, *, trunk_grad: bool = True):
         """``windows`` (B, N, H, W) spikes per interval, any N >= 1 (trained with ``config.n_windows``).
 
@@ -124,13 +144,16 @@ class RSIRNet(nn.Module):
             w_len = window_length(windows, cfg.window) if cfg.head_windows != (0,) else cfg.window
             N = windows.shape[1]
             supports = [support_windows(n, N, cfg.window, w_len) for n in cfg.head_windows]
-            bank = classic_bank(windows, maps, cfg.head_sigmas, supports)
+            bank = classic_bank(windows, maps, cfg.head_sigmas, supports, cfg.head_edges)
             cands = torch.cat([out["output"], bank], dim=1)
             level = self.level(windows).expand(-1, 1, *windows.shape[-2:])
             cues = None
             if cfg.head_motion:  # one channel per short entry of the trained layout
                 short = [k if k > 0 else N for n, k in zip(cfg.head_windows, supports) if 0 < n < cfg.n_windows]
                 cues = motion_cue(windows, short, w_len)
+            if cfg.head_light_level:
+                light = self.light_level(windows, maps).expand(-1, 1, *windows.shape[-2:])
+                cues = light if cues is None else torch.cat([cues, light], dim=1)
             y, wts, logits = self.head(cands * s, level, windows.mean(dim=1, keepdim=True), cues)
             out["head"], out["head_weights"], out["head_logits"] = y / s, wts, logits
             out["head_candidates"] = cands
@@ -180,13 +203,36 @@ class RSIRNet(nn.Module):
         return self.forward(windows, maps)["output"]
 
 
+def head_psnr_loss(pred, target) -> "torch.Tensor":
+    """Minus the mean PSNR [dB] of ``pred`` against ``target`` (B, 1, H, W), as ``render2spike evaluate`` scores.
+
+    Per item, both are divided by the target's white level (its
+    :data:`recon.metrics.WHITE_PERCENTILE` th percentile), the target clipped to
+    [0, 1], and the PSNR is ``-10 log10(MSE + 1e-10)`` at data range 1 (the
+    prediction is not clipped, which would stop its gradient; within [0, 1]
+    this is the evaluation's PSNR). An item's gradient scales as
+    ``1 / MSE``: a 1 % smaller error is worth as much in a dim item as in a
+    bright one, as in the mean PSNR over items; an L1 loss in the network's
+    scaled units instead weighs the dim items little (their scale is set by
+    the dark spikes).
+    """
+    from ..metrics import WHITE_PERCENTILE
+    _check_4d(target, "target", channels=1)
+    t = target.flatten(1)
+    wl = torch.quantile(t, WHITE_PERCENTILE / 100.0, dim=1).clamp_min(1e-8).view(-1, 1)
+    mse = ((pred.flatten(1) / wl - (t / wl).clamp(0.0, 1.0)) ** 2).mean(dim=1)
+    return (10.0 * torch.log10(mse + 1e-10)).mean()
+
+
 def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
     """Loss on every step (L1, in the network's scaled units), averaged over the steps.
 
     Per step: |refine - y| + |fusion - y| + |denoise - y| + sum over the four
     Haar bands of |denoise_band - y_band| + nim_loss_weight * |nim - y|,
-    each a mean over pixels; with an output head, plus |head - y| (the final
-    image) and ``head_route_weight`` x :func:`head_routing_loss`.
+    each a mean over pixels; with an output head, plus its image's term (the
+    final image; ``config.head_loss``: ``"l1"``, |head - y| in scaled units;
+    ``"psnr"``, the negative PSNR of :func:`head_psnr_loss`) and
+    ``head_route_weight`` x :func:`head_routing_loss`.
     ``head_only``: the head's terms alone (training the head on a fixed
     network). Returns (loss, dict of the mean components).
     """
@@ -206,7 +252,10 @@ def rsir_loss(model: RSIRNet, out: dict, target, *, head_only: bool = False):
              + model.config.nim_loss_weight * parts["nim"]) / n
     parts = {k: float(v.detach() if hasattr(v, "detach") else v) / n for k, v in parts.items()}
     if "head" in out:
-        head = F.l1_loss(out["head"] * s, y)
+        if model.config.head_loss == "psnr":
+            head = head_psnr_loss(out["head"], target)
+        else:
+            head = F.l1_loss(out["head"] * s, y)
         route = head_routing_loss(out["head_logits"], out["head_candidates"] * s, y)
         parts["head"] = float(head.detach())
         parts["route"] = float(route.detach())

@@ -84,6 +84,10 @@ def register(subparsers) -> None:
     p.add_argument("--head-motion", action="store_true",
                    help="with --head and a short --head-windows entry: give the head the per-pixel motion cue "
                         "(short- vs all-window disagreement in units of shot noise)")
+    p.add_argument("--head-edges", choices=["symmetric", "replicate"],
+                   help="with --head: how the candidates' Gaussians treat the image border: symmetric (mirrored, as "
+                        "the classic baseline smooths; the default for a new head) or replicate (the edge pixel "
+                        "repeated)")
     p.add_argument("--train-only", choices=["head"],
                    help="train only the output head, keeping the rest of the network fixed (with --init "
                         "CKPT --head: a few CPU minutes)")
@@ -180,7 +184,7 @@ def run(args) -> int:
         raise InputError(f"--resume continues the stored network and training settings; drop "
                          f"{', '.join(given + extra)}", field="--resume")
     for flag, on in (("--head-sigmas", args.head_sigmas is not None), ("--head-windows", args.head_windows is not None),
-                     ("--head-motion", args.head_motion)):
+                     ("--head-motion", args.head_motion), ("--head-edges", args.head_edges is not None)):
         if on and not args.head:
             raise InputError(f"{flag} sets the output head's bank: add --head", field=flag)
     if args.train_only and not args.init:
@@ -192,7 +196,8 @@ def run(args) -> int:
     net = RSIRConfig.preset(args.size or "tiny", normalise=args.normalise or "mean", cumulative=args.cumulative,
                              linearise=args.linearise, level_input=args.level_input, head=args.head,
                              **{k: v for k, v in (("head_sigmas", args.head_sigmas), ("head_windows", args.head_windows),
-                                                  ("head_motion", args.head_motion or None)) if v is not None})
+                                                  ("head_motion", args.head_motion or None),
+                                                  ("head_edges", args.head_edges)) if v is not None})
     for name in SIZE_FLAGS:
         v = getattr(args, name)
         if v is not None:
@@ -205,7 +210,8 @@ def run(args) -> int:
             "size": args.size or "tiny"}
     summary = train(ds, args.out, net_config=net, train_config=cfg, resume=args.resume, init_checkpoint=args.init,
                     add_head=args.head, head_sigmas=args.head_sigmas, head_windows=args.head_windows,
-                    head_motion=args.head_motion or None, run_info=info, progress=not args.quiet)
+                    head_motion=args.head_motion or None, head_edges=args.head_edges, run_info=info,
+                    progress=not args.quiet)
     print(f"trained {summary['steps_done']} steps in {summary['elapsed_s'] / 60:.1f} min on {summary['device']}; "
           f"final loss {summary['final_loss']:.4g}; model: {summary['model']}")
     return 0

@@ -249,7 +249,8 @@ def test_head_windows_config_round_trips_checks_and_defaults_to_the_long_window(
     assert cfg.head_windows == (1, 4, 0) and cfg.to_dict()["head_windows"] == [1, 4, 0]
     assert RSIRConfig.from_dict(cfg.to_dict()) == cfg
     net = RSIRNet(cfg)
-    assert net.n_bank == 6 and net.n_cues == 2 and net.head.net[0].in_channels == 1 + 6 + 2 + 2
+    # cues: two motion channels and the light level
+    assert net.n_bank == 6 and net.n_cues == 3 and net.head.net[0].in_channels == 1 + 6 + 2 + 3
     d = cfg.to_dict()
     for key in ("head_windows", "head_motion"):  # a config written before these fields: the long window alone
         d.pop(key)
@@ -285,10 +286,124 @@ def test_a_head_with_short_windows_starts_from_the_old_head_and_old_checkpoints_
     torch.testing.assert_close(back.reconstruct(windows, maps), y_old, rtol=0, atol=0)
     # the temporal bank starts as the old head: the new candidates' weights start at about e^-8 of the others'
     new = _with_head(old, seed=6, device="cpu", head_windows=(1, 2, 4, 0), head_motion=True).eval()
-    assert new.n_bank == 4 * len(old.config.head_sigmas) and new.n_cues == 3
+    assert new.n_bank == 4 * len(old.config.head_sigmas) and new.n_cues == 3 + 1  # motion cues, light level
     out = new(windows, maps)
     K = len(old.config.head_sigmas)
     w_new = out["head_weights"][:, 1:1 + 3 * K].detach()  # the short-window candidates
     assert float(w_new.max()) < 20 * np.exp(NEW_CANDIDATE_LOGIT)
     y_new = out["output"].detach()
     assert float((y_new - y_old).abs().max()) < 0.01 * float(y_old.abs().max())
+
+
+@pytest.mark.parametrize("sigma", [0.75, 3.0, 12.0])
+def test_symmetric_blur_is_the_classic_baselines_gaussian(sigma):
+    """``edges="symmetric"`` is scipy's ``gaussian_filter`` (mode reflect, truncate 4), also for kernels wider
+    than the image (12 px on 9 rows: the mirror repeats)."""
+    from scipy.ndimage import gaussian_filter
+    x = torch.rand(2, 3, 9, 14, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    y = gaussian_blur(x, sigma, "symmetric")
+    torch.testing.assert_close(GaussianBlur(sigma, "symmetric")(x), y)
+    for b in range(2):
+        for c in range(3):
+            np.testing.assert_allclose(y[b, c].numpy(), gaussian_filter(x[b, c].numpy(), sigma, mode="reflect"),
+                                       rtol=0, atol=1e-12)
+    with pytest.raises(InputError, match="edges"):
+        gaussian_blur(x, sigma, "wrap")
+
+
+def test_symmetric_bank_smooths_as_the_classic_baseline_and_replicate_spoils_the_border():
+    """With dark as a charge, the bank's candidate at width s times the gain is the classic baseline's
+    smoothed dark excess (:func:`recon.baselines.smooth_rate`, hot pixels left out), clipped at 0.
+
+    Replicated edges give the border pixel the weight of the kernel's outer tail: on a noisy flat image
+    the border of a 6-pixel smoothing then varies several times more than the inside.
+    """
+    from recon.baselines import smooth_rate
+    from recon.profiles import resolve_profile
+    prof = resolve_profile("vidar-default", 24, 30, seed=0)
+    assert prof.dark == "current" and prof.hot_mask.any()
+    maps = torch.from_numpy(sensor_maps(prof)[None].astype(np.float32)).double()
+    rng = np.random.default_rng(5)
+    r = rng.binomial(320, 0.05, (prof.height, prof.width)) / 320.0  # TFP of a flat scene over 320 intervals
+    windows = torch.from_numpy(np.broadcast_to(r, (1, 2, *r.shape)).copy()).double()
+    sigmas = (1.5, 6.0)
+    bank = classic_bank(windows, maps, sigmas, edges="symmetric")[0].numpy()
+    p, g = maps[0, 0].numpy(), maps[0, 1].numpy()
+    for k, s in enumerate(sigmas):
+        expect = np.maximum(smooth_rate(r, prof, s) - p, 0.0) / g
+        np.testing.assert_allclose(bank[k], expect, rtol=1e-5, atol=1e-7)
+    # the weight a border pixel's own rate gets in its smoothed value (no maps: gain 1, no dark, no hot pixels).
+    # Across the border, replicating gives it the kernel's whole outer half, sum_{i>=0} k_i ~ 1/2 + k_0/2; mirroring
+    # k_0 + k_1 ~ 2 k_0, with k_0 = 1 / (sqrt(2 pi) 6) = 0.066 at 6 px: about 4x less
+    imp = torch.zeros(1, 2, 24, 30, dtype=torch.float64)
+    imp[0, :, 0, 15] = 1.0
+    own = {e: float(classic_bank(imp, None, (6.0,), edges=e)[0, 0, 0, 15]) for e in ("replicate", "symmetric")}
+    k = np.exp(-0.5 * (np.arange(-24, 25) / 6.0) ** 2)
+    k /= k.sum()
+    assert own["symmetric"] == pytest.approx(k[24] * (k[24] + k[25]), rel=1e-9)
+    assert own["replicate"] > 3.0 * own["symmetric"]
+
+
+def test_head_edges_default_symmetric_and_checkpoints_without_it_replicate():
+    assert RSIRConfig.tiny(head=True).head_edges == "symmetric"
+    d = RSIRConfig.tiny(head=True).to_dict()
+    assert RSIRConfig.from_dict(d).head_edges == "symmetric"
+    d.pop("head_edges")  # a config stored before the setting existed was trained on replicated edges
+    assert RSIRConfig.from_dict(d).head_edges == "replicate"
+    with pytest.raises(InputError, match="head_edges"):
+        RSIRConfig.tiny(head=True, head_edges="mirror")
+    from recon.train import _with_head
+    old = _with_head(_tiny(), seed=0, device="cpu", head_edges="replicate")
+    assert old.config.head_edges == "replicate"
+    assert _with_head(old, seed=0, device="cpu", head_sigmas=(0.0, 3.0)).config.head_edges == "symmetric"
+
+
+def test_head_psnr_loss_is_minus_the_evaluations_mean_psnr_and_old_configs_keep_l1():
+    from recon.metrics import psnr_ssim
+    from recon.nets import head_psnr_loss
+    rng = np.random.default_rng(8)
+    target = rng.gamma(2.0, 1.0, (3, 1, 20, 24)) * np.array([1e-4, 1e-2, 0.5])[:, None, None, None]  # three light levels
+    wl = np.percentile(target.reshape(3, -1), 99.5, axis=1)[:, None, None, None]
+    # predictions kept inside the evaluation's [0, 1] after its normalisation, so its clip changes nothing
+    noise = rng.normal(0.0, 1.0, target.shape) * np.array([0.02, 0.1, 0.3])[:, None, None, None]
+    pred = np.clip(target / wl + noise, 0, 1) * wl
+    loss = float(head_psnr_loss(torch.from_numpy(pred), torch.from_numpy(target)))
+    expect = -np.mean([psnr_ssim(pred[i, 0], target[i, 0])[0] for i in range(3)])
+    assert loss == pytest.approx(expect, abs=1e-6)
+    # the gradient weighs every item by 1 / MSE: a dim item's error counts as much as a bright one's
+    p = torch.from_numpy(pred).requires_grad_()
+    head_psnr_loss(p, torch.from_numpy(target)).backward()
+    assert torch.isfinite(p.grad).all()
+    d = RSIRConfig.tiny(head=True).to_dict()
+    assert d["head_loss"] == "psnr"
+    d.pop("head_loss")
+    assert RSIRConfig.from_dict(d).head_loss == "l1"
+    with pytest.raises(InputError, match="head_loss"):
+        RSIRConfig.tiny(head=True, head_loss="l2")
+
+
+def test_light_level_is_the_mean_light_count_over_the_dark_floor_without_hot_pixels():
+    """In dim light the mean count of all spikes hardly moves with the light (the dark spikes dominate);
+    the light level is the excess over each pixel's dark floor, so it doubles with the light."""
+    net = _tiny(head=True, head_windows=(1, 0), head_motion=True)
+    assert net.config.head_light_level and net.n_cues == 2
+    H, W = 12, 16
+    p = np.random.default_rng(2).uniform(0.004, 0.006, (H, W))  # dark floor [spikes per interval]
+    hot = np.zeros((H, W))
+    hot[3, 4] = 1.0
+    maps = torch.from_numpy(np.stack([p, np.ones((H, W)), hot, np.ones((H, W))])[None].astype(np.float32))
+    levels, lights = [], []
+    for x in (0.0005, 0.001):  # light spikes per interval: the dark floor's tenth and fifth
+        r = p + x
+        r[3, 4] = 0.9  # the hot pixel fires far more and is left out
+        windows = torch.from_numpy(np.broadcast_to(r, (1, 10, H, W)).astype(np.float32).copy())
+        levels.append(float(net.level(windows)))
+        lights.append(float(net.light_level(windows, maps)))
+        assert lights[-1] == pytest.approx(np.log10(x * 320), abs=2e-3)
+    assert lights[1] - lights[0] == pytest.approx(np.log10(2.0), abs=3e-3)
+    assert levels[1] - levels[0] < 0.1 * np.log10(2.0)
+    y = net(torch.from_numpy(np.broadcast_to(p + 0.001, (1, 10, H, W)).astype(np.float32).copy()), maps)["output"]
+    assert y.shape == (1, 1, H, W) and torch.isfinite(y).all()
+    d = net.config.to_dict()
+    d.pop("head_light_level")  # a config stored before the input existed
+    assert RSIRConfig.from_dict(d).head_light_level is False and RSIRNet(RSIRConfig.from_dict(d)).n_cues == 1
