@@ -51,6 +51,7 @@ import functools
 import importlib.util
 import os
 import sys
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
@@ -168,7 +169,10 @@ class _TorchModel(SpikeModel):
         order of the fast kernels; interval q of the piece has ``l0 + sl * q``.
         """
         torch = self.torch
-        R = torch.from_numpy(seg.rates).to(self.device)  # (K, P) float32: the block's keyframe rows
+        with warnings.catch_warnings():  # a read-only input (a reader's buffer) is fine: R is never written
+            warnings.simplefilter("ignore", UserWarning)
+            R = torch.from_numpy(seg.rates)
+        R = R.to(self.device)  # (K, P) float32: the block's keyframe rows
         for i in range(seg.n_pieces):
             lo, nk, n = int(seg.lo[i]), int(seg.nk[i]), int(seg.length[i])
             l0 = None
