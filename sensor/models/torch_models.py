@@ -387,24 +387,27 @@ class ELSSimCrossingTorch(_TorchModel):
             fired = cold & (tau < m1)
             rem.sub_(torch.where(fired, 0.0, lam * torch.clamp(m1 - s, min=0.0)))
             idx = fired.nonzero().squeeze(1)
-            t = tau[idx]  # their firing times
+            t = tau.index_select(0, idx)  # their firing times
             # ---- the pixels that fired: reset, blind for f, and on to the next firing in this interval
+            # (index_select / index_copy_ rather than x[idx]: torch's CPU advanced indexing is ~100x slower)
+            row = spk[q]
             while idx.numel():
-                spk[q, idx] = True
-                s_new = t + self.f[idx]
-                lam_i = lam[idx]
-                r_new = torch._standard_gamma(self.k[idx], generator=g)
-                dn = dark_next[idx]
+                row.index_fill_(0, idx, True)
+                s_new = t + self.f.index_select(0, idx)
+                lam_i = lam.index_select(0, idx)
+                r_new = torch._standard_gamma(self.k.index_select(0, idx), generator=g)
+                dn = dark_next.index_select(0, idx)
                 if self.has_dark:  # a dark event that fired, or falls in the blind time, is gone: the next one
-                    dn = torch.where((dn <= t) | (dn < s_new), self._exp_after(s_new, self.mu[idx], g), dn)
+                    dn = torch.where((dn <= t) | (dn < s_new),
+                                     self._exp_after(s_new, self.mu.index_select(0, idx), g), dn)
                 tau_i = torch.minimum(s_new + r_new / lam_i, dn)
                 again = tau_i < m1
                 r_new = torch.where(again, r_new, r_new - lam_i * torch.clamp(m1 - s_new, min=0.0))
-                blind[idx] = s_new
-                rem[idx] = r_new
-                dark_next[idx] = dn
+                blind.index_copy_(0, idx, s_new)
+                rem.index_copy_(0, idx, r_new)
+                dark_next.index_copy_(0, idx, dn)
                 sel = again.nonzero().squeeze(1)
-                idx, t = idx[sel], tau_i[sel]
+                idx, t = idx.index_select(0, sel), tau_i.index_select(0, sel)
         if hot_job is not None:
             hot = hot_job.result()
-            spk[:, self.hot_idx] = torch.from_numpy(hot).to(self.device)
+            spk.index_copy_(1, self.hot_idx, torch.from_numpy(np.ascontiguousarray(hot)).to(self.device))
