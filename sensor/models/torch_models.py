@@ -313,10 +313,14 @@ class ELSSimCrossingTorch(_TorchModel):
 
     Draws: at the stream's first block a Gamma(k) target for every pixel, then an exponential (dark) for every
     pixel with dark events; per interval, for each round of firings, a Gamma target and an exponential for the
-    pixels that fired. See the module docstring for why this is the reference's law.
+    pixels that fired (on the CPU) or for all pixels, kept where they fired (on CUDA: see :attr:`dense_rounds`).
+    See the module docstring for why this is the reference's law.
     """
 
     name = "elssim"
+    #: how the firings after each interval's first pass are handled: True whole arrays under a mask
+    #: (:meth:`_rounds_dense`), False the gathered pixels (:meth:`_rounds_compact`), None by device (dense on CUDA)
+    dense_rounds: bool | None = None
 
     def __init__(self, profile: SensorProfile, device: str | None = None):
         super().__init__(profile, device)
@@ -352,6 +356,53 @@ class ELSSimCrossingTorch(_TorchModel):
         e = self.torch.empty_like(t0).exponential_(generator=g)
         return t0 + e / mu
 
+    def _rounds_compact(self, row, fired, tau, lam, m1, state, g):
+        """The firings after the first pass, on the pixels that fired only (gathered by index): each round
+        resets them, draws their new Gamma target (and dark event), and keeps those that fire again before m1.
+        Two host synchronisations per round; the fewest draws (the CPU's choice)."""
+        torch = self.torch
+        rem, dark_next, blind = state["rem"], state["dark_next"], state["blind"]
+        idx = fired.nonzero().squeeze(1)
+        t = tau.index_select(0, idx)  # their firing times
+        # (index_select / index_copy_ rather than x[idx]: torch's CPU advanced indexing is ~100x slower)
+        while idx.numel():
+            row.index_fill_(0, idx, True)
+            s_new = t + self.f.index_select(0, idx)
+            lam_i = lam.index_select(0, idx)
+            r_new = torch._standard_gamma(self.k.index_select(0, idx), generator=g)
+            dn = dark_next.index_select(0, idx)
+            if self.has_dark:  # a dark event that fired, or falls in the blind time, is gone: the next one
+                dn = torch.where((dn <= t) | (dn < s_new), self._exp_after(s_new, self.mu.index_select(0, idx), g), dn)
+            tau_i = torch.minimum(s_new + r_new / lam_i, dn)
+            again = tau_i < m1
+            r_new = torch.where(again, r_new, r_new - lam_i * torch.clamp(m1 - s_new, min=0.0))
+            blind.index_copy_(0, idx, s_new)
+            rem.index_copy_(0, idx, r_new)
+            dark_next.index_copy_(0, idx, dn)
+            sel = again.nonzero().squeeze(1)
+            idx, t = idx.index_select(0, sel), tau_i.index_select(0, sel)
+
+    def _rounds_dense(self, row, fired, tau, lam, m1, state, g):
+        """The same rounds on whole arrays under the mask of the pixels that fired: a Gamma (and an exponential)
+        is drawn for every pixel each round and kept where it fired. One host synchronisation per round, no
+        gather (the GPU's choice: its kernels are cheap, its synchronisations are not). Same law."""
+        torch = self.torch
+        rem, dark_next, blind = state["rem"], state["dark_next"], state["blind"]
+        while True:
+            row |= fired
+            s_new = torch.where(fired, tau + self.f, blind)
+            rem.copy_(torch.where(fired, torch._standard_gamma(self.k, generator=g), rem))
+            if self.has_dark:  # a dark event that fired, or falls in the blind time, is gone: the next one
+                redraw = fired & ((dark_next <= tau) | (dark_next < s_new))
+                dark_next.copy_(torch.where(redraw, self._exp_after(s_new, self.mu, g), dark_next))
+            blind.copy_(s_new)
+            tau = torch.minimum(s_new + rem / lam, dark_next)
+            again = fired & (tau < m1)
+            rem.sub_(torch.where(fired & ~again, lam * torch.clamp(m1 - s_new, min=0.0), 0.0))
+            if not bool(again.any()):
+                return
+            fired = again
+
     def _hot_block(self, seg, state, host_rng):
         """The hot pixels' spikes, bool (B, n_hot) on the host (the numba kernel, or the reference)."""
         from sensor.io.bits import unpack_frames
@@ -377,6 +428,7 @@ class ELSSimCrossingTorch(_TorchModel):
                 dark_next.copy_(self._exp_after(torch.zeros_like(blind), self.mu, g))
             state["started"] = True
         cold = self.cold
+        dense = self.dense_rounds if self.dense_rounds is not None else self.device.type == "cuda"
         for q, lam in self._lambdas(seg):
             lam = self._rate(lam)
             m = float(seg.m0 + q)
@@ -386,28 +438,11 @@ class ELSSimCrossingTorch(_TorchModel):
             tau = torch.minimum(s + rem / lam, dark_next)  # rem / 0 = inf: no light, no light firing
             fired = cold & (tau < m1)
             rem.sub_(torch.where(fired, 0.0, lam * torch.clamp(m1 - s, min=0.0)))
-            idx = fired.nonzero().squeeze(1)
-            t = tau.index_select(0, idx)  # their firing times
             # ---- the pixels that fired: reset, blind for f, and on to the next firing in this interval
-            # (index_select / index_copy_ rather than x[idx]: torch's CPU advanced indexing is ~100x slower)
-            row = spk[q]
-            while idx.numel():
-                row.index_fill_(0, idx, True)
-                s_new = t + self.f.index_select(0, idx)
-                lam_i = lam.index_select(0, idx)
-                r_new = torch._standard_gamma(self.k.index_select(0, idx), generator=g)
-                dn = dark_next.index_select(0, idx)
-                if self.has_dark:  # a dark event that fired, or falls in the blind time, is gone: the next one
-                    dn = torch.where((dn <= t) | (dn < s_new),
-                                     self._exp_after(s_new, self.mu.index_select(0, idx), g), dn)
-                tau_i = torch.minimum(s_new + r_new / lam_i, dn)
-                again = tau_i < m1
-                r_new = torch.where(again, r_new, r_new - lam_i * torch.clamp(m1 - s_new, min=0.0))
-                blind.index_copy_(0, idx, s_new)
-                rem.index_copy_(0, idx, r_new)
-                dark_next.index_copy_(0, idx, dn)
-                sel = again.nonzero().squeeze(1)
-                idx, t = idx.index_select(0, sel), tau_i.index_select(0, sel)
+            if dense:
+                self._rounds_dense(spk[q], fired, tau, lam, m1, state, g)
+            else:
+                self._rounds_compact(spk[q], fired, tau, lam, m1, state, g)
         if hot_job is not None:
             hot = hot_job.result()
             spk.index_copy_(1, self.hot_idx, torch.from_numpy(np.ascontiguousarray(hot)).to(self.device))

@@ -40,6 +40,8 @@ from sensor.models.step import block_generator  # noqa: E402
 HAVE_CUDA = torch_models.cuda_works()
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda,
                                                pytest.mark.skipif(not HAVE_CUDA, reason="no working CUDA device")])]
+#: the crossing reset's tests also run the CUDA path's dense firing rounds on the CPU ("cpu-dense")
+CROSSING_DEVICES = DEVICES + ["cpu-dense"]
 ALPHA = 1e-4
 
 
@@ -49,8 +51,16 @@ def prof(h, w, theta, **kw):
 
 
 def run(rate, p, device, model="elssim", seed=0, t_s=None, impl="torch", chunk=None):
-    return sensor.simulate(rate, p, model, seed=seed, t_s=t_s, implementation=impl,
-                           device=device if impl == "torch" else None, chunk=chunk)
+    """sensor.simulate with ``impl``; ``device`` "cpu-dense": torch on the CPU with the crossing reset's dense
+    firing rounds (the path CUDA takes, :meth:`ELSSimCrossingTorch._rounds_dense`)."""
+    dense = device == "cpu-dense"
+    cls = torch_models.ELSSimCrossingTorch
+    try:
+        cls.dense_rounds = True if dense else None
+        return sensor.simulate(rate, p, model, seed=seed, t_s=t_s, implementation=impl,
+                               device=("cpu" if dense else device) if impl == "torch" else None, chunk=chunk)
+    finally:
+        cls.dense_rounds = None
 
 
 def rates_agree(a, b, what=""):
@@ -198,7 +208,7 @@ def crossing(h, w, theta, **kw):
     return prof(h, w, theta, reset="crossing", **kw)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_constant_light_matches_the_phase_chain_and_fast_isi(device):
     k, lam = 20, 9.0
     H, W, T = 20, 20, 1500
@@ -220,7 +230,7 @@ def test_crossing_constant_light_matches_the_phase_chain_and_fast_isi(device):
     ks_agree(nth_isis(ts2, 5), nth_isis(fs, 5), "crossing ISI")
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_dark_only_is_a_poisson_process_and_is_lost_while_blind(device):
     H, W, T = 20, 20, 8000
     p = crossing(H, W, 1000.0, dark_rate=0.05, dark_rate_spread=0.8, seed=3)
@@ -238,7 +248,7 @@ def test_crossing_dark_only_is_a_poisson_process_and_is_lost_while_blind(device)
     assert abs(-np.expm1(-mu) - r) > 4 * Z * se  # without the blind loss the rate would be 1 - exp(-mu)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_dark_current_agrees_with_fast_and_renewal(device):
     # dark == "current": d electrons per interval count with the light; no light: firings every Gamma(k, d)
     H, W, T, d, k = 20, 20, 3000, 2.0, 8
@@ -252,7 +262,7 @@ def test_crossing_dark_current_agrees_with_fast_and_renewal(device):
     assert abs(ts.mean() - r) < Z * se + 2.0 / T, (ts.mean(), r)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(device):
     lam, k, T, H, W = 6.0, 12, 3000, 20, 20
     for f in (0.0, 0.5):
@@ -265,7 +275,7 @@ def test_crossing_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(d
     assert theory.crossing_rates(lam, k, 0.5)[1] < theory.crossing_rates(lam, k, 0.0)[1] - 10 * (Z * se + 2.0 / T)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_prnu_gain_sets_the_photoelectrons_needed(device):
     lam, theta, T, H, W = 3.0, 20.0, 2000, 30, 20
     gain = np.where(np.arange(H * W).reshape(H, W) % 2 == 0, 0.8, 1.25).astype(np.float32)
@@ -279,7 +289,7 @@ def test_crossing_prnu_gain_sets_the_photoelectrons_needed(device):
         assert abs(counts.mean() - expected) < Z * np.sqrt(var / counts.size), (g, counts.mean(), expected)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_hot_pixel_current_fires_at_every_whole_threshold(device):
     # no light, no dark, f = 0: the firings by interval T are exactly floor(S_T), S_T ~ N(T mu, T sigma^2)
     H, W, T, mu, sig = 10, 10, 3000, 0.07, 0.01
@@ -293,7 +303,7 @@ def test_crossing_hot_pixel_current_fires_at_every_whole_threshold(device):
     assert abs(counts.mean() - m1) < Z * np.sqrt((m2 - m1 * m1) / counts.size), (counts.mean(), m1)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_every_effect_agrees_with_reference_and_fast(device):
     p = sensor.SensorProfile.synthetic(30, 30, threshold_e=200.0, dark_rate=0.01, dark_rate_spread=0.37,
                                        prnu_sigma=0.058, hot_pixel_fraction=0.03, hot_mu=0.05, hot_sigma=0.02,
@@ -313,7 +323,7 @@ def test_crossing_every_effect_agrees_with_reference_and_fast(device):
         ks_agree(nth_isis(ts[:, ~hot], 5), nth_isis(other[:, ~hot], 5), f"5th ISI vs {impl}")
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 def test_crossing_keyframed_input_follows_the_exact_phase_chain(device):
     H, W, k, K = 30, 40, 15, 31  # keyframes every 20 intervals -> 600 intervals
     t = np.arange(K) * 1e-3
@@ -374,7 +384,7 @@ def _mixed_profile(reset):
                                           hot_pixel_fraction=0.05, refractory_s=0.3 * INTERVAL_S, seed=7, reset=reset)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", CROSSING_DEVICES)
 @pytest.mark.parametrize("reset", ["interval", "crossing"])
 def test_seed_reproduces_the_spikes_for_any_chunking(device, reset):
     p = _mixed_profile(reset)
@@ -390,16 +400,17 @@ def test_seed_reproduces_the_spikes_for_any_chunking(device, reset):
     np.testing.assert_array_equal(run(r, p, device, seed=5, t_s=t), run(r, p, device, seed=5, t_s=t, chunk=3))
 
 
+@pytest.mark.parametrize("device", ["cpu", "cpu-dense"])
 @pytest.mark.parametrize("reset", ["interval", "crossing"])
-def test_cpu_spikes_do_not_depend_on_torch_threads(reset):
+def test_cpu_spikes_do_not_depend_on_torch_threads(reset, device):
     p = _mixed_profile(reset)
     lam = np.random.default_rng(1).uniform(0, 12, (300, 12, 16)).astype(np.float32)
     n = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = run(lam, p, "cpu", seed=8)
+        one = run(lam, p, device, seed=8)
         torch.set_num_threads(max(2, n))
-        two = run(lam, p, "cpu", seed=8)
+        two = run(lam, p, device, seed=8)
     finally:
         torch.set_num_threads(n)
     np.testing.assert_array_equal(one, two)
