@@ -5,8 +5,8 @@ texture x a slow flicker, on a centred window of ``vidar-default`` with all its 
 ``SpikeSimulator.iter_feed_packed`` with ``implementation="torch"`` on ``--device`` and with ``fast`` (numba)
 at each thread count of ``--threads`` (``RENDER2SPIKE_THREADS``). Every timed run includes the packed spikes'
 copy to the host (nothing is written to disk). Throughput is pixel-steps/s = pixels x intervals / wall
-seconds; the ratio torch / fast is taken against the fast row with the most threads, measured minutes apart
-at most; the load average (1 min) is printed beside each figure. One warm-up run per implementation (numba's
+seconds; the ratio torch / fast is taken against the fast row with the most threads, measured right after the
+torch row on the same input; the load average (1 min) is printed beside each figure. One warm-up run per implementation (numba's
 cache load, torch's CUDA start) is not timed.
 
     python benchmarks/spike_stage.py [--device cpu|cuda|auto] [--threads 1 2 4 8 16] [--size 250x400]
@@ -125,8 +125,8 @@ def main(argv=None) -> int:
         f"Python {platform.python_version()}, numpy {np.__version__}, torch {torch.__version__} "
         f"({torch.get_num_threads()} CPU threads)  ",
         f"Load average (1 min) at start / end: {load0:.2f} / {load1:.2f}  ",
-        f"Input: vidar-default window {h} x {w} ({P} pixels, threshold {base.threshold_e:g} e-, reset and dark "
-        f"current, PRNU, {int(base.hot_mask.sum())} hot pixels), elssim, keyframes every 20 intervals, "
+        f"Input: vidar-default window {h} x {w} ({P} pixels, threshold {base.threshold_e:g} e-, dark mode {base.dark}, "
+        f"PRNU, {int(base.hot_mask.sum())} hot pixels), elssim, keyframes every 20 intervals, "
         f"{args.intervals} intervals per run; the packed spikes are copied to the host, not written.",
         "",
         "| reset | e-/interval | intervals | torch device | torch wall s | torch pixel-steps/s | torch spikes/px/int "
@@ -142,6 +142,11 @@ def main(argv=None) -> int:
     for r, lam, nt, v, wall, la in scaling:
         su = f"{v / one[(r, lam)]:.2f}" if (r, lam) in one else "-"
         lines.append(f"| {r} | {lam:g} | {nt} | {v:.3g} | {wall:.2f} | {su} | {la:.2f} |")
+    n_cpu = len(os.sched_getaffinity(0))
+    loads = [load0, load1] + [r[7] for r in rows] + [r[11] for r in rows] + [x[5] for x in scaling]
+    if max(loads) >= n_cpu - 0.5:
+        lines += ["", f"The load average reached {max(loads):.2f} on {n_cpu} usable CPUs: other work shared them, so "
+                      "the thread rows show contention rather than the kernels' scaling."]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(out.suffix + ".tmp")

@@ -25,9 +25,9 @@ The models, and why each is the reference's (equal in distribution, never bitwis
   before ``m + 1`` (then a new target is drawn, it is blind for ``f``, and it may fire again in the same
   interval: the pixels that fired are iterated until none does), else ``rem -= lambda_m (m + 1 - s)``.
   The hot pixels (their charge is a current plus photoelectrons, kept >= 0; 0.1 % of ``vidar-default``) are
-  not vectorised: they run on the host, through the event-driven numba kernel on a 1 x n sub-sensor of just
-  those pixels (:class:`sensor.models.fast.ELSSimCrossingFast`, or the reference without numba), in a thread
-  while the device works; their spike bits are copied to the device before packing.
+  not vectorised: they run on the host, through the event-driven numba kernel on 1 x 8 sub-sensors of just
+  those pixels (:class:`sensor.models.fast.ELSSimCrossingFast`, or the reference without numba), on host
+  threads while the device works; their spike bits are copied to the device before packing.
 * ``ideal`` (:class:`IdealTorch`): Algorithm 1, deterministic. lambda_m is evaluated in float64 from the
   pieces as the fast kernels do; with one rate per interval it is the float32 input exactly, so the spikes are
   bitwise the reference's; with keyframes a spike may move by one interval where the charge meets the
@@ -37,7 +37,8 @@ The models, and why each is the reference's (equal in distribution, never bitwis
 
 Randomness: block ``b`` of a stream seeded with ``seed`` draws from
 ``block_generator(seed, model, b, "torch")`` (its own spawn key); that generator spawns two children: the first
-seeds a ``torch.Generator`` on the device (one 63-bit seed), the second is the hot pixels' host generator. The
+seeds a ``torch.Generator`` on the device (one 63-bit seed), the second spawns one host generator per group of
+:data:`HOT_GROUP_PIXELS` hot pixels (crossing reset). The
 same seed on the same kind of device gives the same spikes for any chunking (blocks are fixed by absolute
 interval index); the CPU and CUDA generators differ, so a stream made on one is not bitwise the one made on the
 other.
@@ -67,6 +68,26 @@ from sensor.rates import Segments
 DEVICE_ENV = "RENDER2SPIKE_SPIKE_DEVICE"
 #: intervals per block of the torch implementation (part of its reproducibility contract)
 TORCH_BLOCK_INTERVALS = 1000
+#: hot pixels per host group of the crossing reset (part of its reproducibility contract: each group has its
+#: own random stream, so the spikes do not depend on how many threads run the groups)
+HOT_GROUP_PIXELS = 8
+
+_HOT_POOL: ThreadPoolExecutor | None = None
+
+
+def _hot_pool() -> ThreadPoolExecutor:
+    """Threads for the crossing reset's hot-pixel groups: ``RENDER2SPIKE_THREADS`` or the usable CPUs, less the
+    one that drives the device (at least 1)."""
+    global _HOT_POOL
+    if _HOT_POOL is None:
+        try:
+            n = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover
+            n = os.cpu_count() or 1
+        env = os.environ.get("RENDER2SPIKE_THREADS")
+        n = int(env) if env and env.isdigit() and int(env) > 0 else max(1, n - 1)
+        _HOT_POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="render2spike-torch-hot")
+    return _HOT_POOL
 
 
 def _import_torch():
@@ -333,12 +354,14 @@ class ELSSimCrossingTorch(_TorchModel):
         self.mu = self._f64(mu)
         hot = np.flatnonzero(p.hot_mask.reshape(-1))
         self.hot_np = hot
+        #: the hot pixels in fixed groups of HOT_GROUP_PIXELS, each its own host model, state and random stream
+        self.hot_groups = [hot[i:i + HOT_GROUP_PIXELS] for i in range(0, hot.size, HOT_GROUP_PIXELS)]
         self.cold = torch.as_tensor(~p.hot_mask.reshape(-1), device=self.device)
         self.hot_idx = torch.as_tensor(hot, dtype=torch.int64, device=self.device)
-        self.hot_model = None
+        self.hot_models = []
         if hot.size:
             from sensor.models.registry import get_model
-            self.hot_model = get_model("elssim", _pixel_subprofile(p, hot), "fast")
+            self.hot_models = [get_model("elssim", _pixel_subprofile(p, grp), "fast") for grp in self.hot_groups]
 
     def init_state(self) -> dict:
         torch = self.torch
@@ -349,7 +372,7 @@ class ELSSimCrossingTorch(_TorchModel):
                 "rem": torch.full((n,), float("nan"), dtype=torch.float64, device=dev),
                 "dark_next": torch.full((n,), float("inf"), dtype=torch.float64, device=dev),
                 "blind": torch.zeros(n, dtype=torch.float64, device=dev),
-                "hot": None if self.hot_model is None else self.hot_model.init_state()}
+                "hot": [hm.init_state() for hm in self.hot_models]}
 
     def _exp_after(self, t0, mu, g):
         """t0 + Exp(mu) per pixel (inf where mu = 0)."""
@@ -403,24 +426,25 @@ class ELSSimCrossingTorch(_TorchModel):
                 return
             fired = again
 
-    def _hot_block(self, seg, state, host_rng):
-        """The hot pixels' spikes, bool (B, n_hot) on the host (the numba kernel, or the reference)."""
+    def _hot_group(self, j, seg, state, rng):
+        """The spikes of hot-pixel group ``j``, bool (B, its pixels) on the host (numba kernel, or the reference)."""
         from sensor.io.bits import unpack_frames
-        hseg = Segments(seg.rates[:, self.hot_np], seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, seg.m1)
-        shape = (1, int(self.hot_np.size))
-        if getattr(self.hot_model, "uses_segments", False):
-            bits = self.hot_model.run_segments(hseg, state["hot"], host_rng)
+        grp, model = self.hot_groups[j], self.hot_models[j]
+        hseg = Segments(seg.rates[:, grp], seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, seg.m1)
+        shape = (1, int(grp.size))
+        if getattr(model, "uses_segments", False):
+            bits = model.run_segments(hseg, state["hot"][j], rng)
             return unpack_frames(bits, shape).reshape(bits.shape[0], -1)
         lam = hseg.dense().astype(np.float32).reshape((-1,) + shape)
-        return self.hot_model.run_block(lam, state["hot"], host_rng).reshape(lam.shape[0], -1)
+        return model.run_block(lam, state["hot"][j], rng).reshape(lam.shape[0], -1)
 
     def _block(self, seg, state, g, host_rng, spk):
         torch = self.torch
-        hot_job = None
-        if self.hot_model is not None:  # on a host thread while this one drives the device
-            pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="render2spike-torch-hot")
-            hot_job = pool.submit(self._hot_block, seg, state, host_rng)
-            pool.shutdown(wait=False)
+        hot_jobs = []
+        if self.hot_models:  # the groups on host threads while this one drives the device
+            pool = _hot_pool()
+            hot_jobs = [pool.submit(self._hot_group, j, seg, state, r)
+                        for j, r in enumerate(host_rng.spawn(len(self.hot_models)))]
         rem, dark_next, blind = state["rem"], state["dark_next"], state["blind"]
         if not state["started"]:  # the stream starts reset and not blind at t = 0
             rem.copy_(torch._standard_gamma(self.k, generator=g))
@@ -443,6 +467,6 @@ class ELSSimCrossingTorch(_TorchModel):
                 self._rounds_dense(spk[q], fired, tau, lam, m1, state, g)
             else:
                 self._rounds_compact(spk[q], fired, tau, lam, m1, state, g)
-        if hot_job is not None:
-            hot = hot_job.result()
+        if hot_jobs:
+            hot = np.concatenate([job.result() for job in hot_jobs], axis=1)
             spk.index_copy_(1, self.hot_idx, torch.from_numpy(np.ascontiguousarray(hot)).to(self.device))
