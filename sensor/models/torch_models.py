@@ -142,6 +142,11 @@ def spike_device(device: str | None = None) -> str:
     if base == "cuda" and not cuda_works():
         raise InputError(f"'{name}' asked for, but no CUDA device works here (no NVIDIA driver, a CPU-only torch, "
                          "or the device failed a test operation); use 'cpu' or 'auto'", field=field)
+    if index:
+        import torch
+        if int(index) >= torch.cuda.device_count():
+            raise InputError(f"'{name}' asked for, but this machine has {torch.cuda.device_count()} CUDA device(s) "
+                             f"(cuda:0 .. cuda:{torch.cuda.device_count() - 1})", field=field)
     return name
 
 
