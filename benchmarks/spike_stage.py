@@ -157,4 +157,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    try:
+        raise SystemExit(main())
+    except sensor.InputError as e:  # a bad --device, or CUDA asked for where none works: one line
+        print(f"spike_stage.py: {e}", file=sys.stderr)
+        raise SystemExit(2)
