@@ -40,8 +40,10 @@ from sensor.models.step import block_generator  # noqa: E402
 HAVE_CUDA = torch_models.cuda_works()
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda,
                                                pytest.mark.skipif(not HAVE_CUDA, reason="no working CUDA device")])]
-#: the crossing reset's tests also run the CUDA path's dense firing rounds on the CPU ("cpu-dense")
-CROSSING_DEVICES = DEVICES + ["cpu-dense"]
+#: the crossing reset's tests also run the CUDA path's dense firing rounds on the CPU ("cpu-dense"): in the default
+#: run for the every-effect and reproducibility tests, with --runslow for every oracle
+CROSSING_DEVICES = DEVICES + [pytest.param("cpu-dense", marks=pytest.mark.slow)]
+DENSE_DEVICES = DEVICES + ["cpu-dense"]
 ALPHA = 1e-4
 
 
@@ -303,7 +305,7 @@ def test_crossing_hot_pixel_current_fires_at_every_whole_threshold(device):
     assert abs(counts.mean() - m1) < Z * np.sqrt((m2 - m1 * m1) / counts.size), (counts.mean(), m1)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", DENSE_DEVICES)
 def test_crossing_every_effect_agrees_with_reference_and_fast(device):
     p = sensor.SensorProfile.synthetic(30, 30, threshold_e=200.0, dark_rate=0.01, dark_rate_spread=0.37,
                                        prnu_sigma=0.058, hot_pixel_fraction=0.03, hot_mu=0.05, hot_sigma=0.02,
@@ -384,7 +386,7 @@ def _mixed_profile(reset):
                                           hot_pixel_fraction=0.05, refractory_s=0.3 * INTERVAL_S, seed=7, reset=reset)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", DENSE_DEVICES)
 @pytest.mark.parametrize("reset", ["interval", "crossing"])
 def test_seed_reproduces_the_spikes_for_any_chunking(device, reset):
     p = _mixed_profile(reset)
