@@ -61,8 +61,8 @@ def register(sub) -> None:
                    help="spike simulator: 'auto' (default: 'torch' on a working CUDA GPU, else 'fast'), 'fast' "
                         "(event-driven numba kernels on the CPU cores), 'torch' (PyTorch, on --device) or "
                         "'reference' (the step-by-step simulator that defines the model)")
-    p.add_argument("--device", default=None, metavar="auto|cpu|cuda[:N]",
-                   help="device of the torch implementation (default: $RENDER2SPIKE_SPIKE_DEVICE, else auto: CUDA "
+    p.add_argument("--device", default=None, metavar="DEVICE",
+                   help="device of the torch implementation: auto, cpu, cuda or cuda:N (default: $RENDER2SPIKE_SPIKE_DEVICE, else auto: CUDA "
                         "when it works); with --implementation auto, 'cpu' picks 'fast'")
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator (the same as --implementation reference)")
