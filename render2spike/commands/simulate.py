@@ -62,8 +62,9 @@ def register(sub) -> None:
                         "(event-driven numba kernels on the CPU cores), 'torch' (PyTorch, on --device) or "
                         "'reference' (the step-by-step simulator that defines the model)")
     p.add_argument("--device", default=None, metavar="DEVICE",
-                   help="device of the torch implementation: auto, cpu, cuda or cuda:N (default: $RENDER2SPIKE_SPIKE_DEVICE, else auto: CUDA "
-                        "when it works); with --implementation auto, 'cpu' picks 'fast'")
+                   help="device of the torch implementation: auto, cpu, cuda or cuda:N (default: "
+                        "$RENDER2SPIKE_SPIKE_DEVICE, else auto: CUDA when it works); with --implementation auto, "
+                        "'cpu' picks 'fast'")
     p.add_argument("--reference", action="store_true",
                    help="use the step-by-step reference simulator (the same as --implementation reference)")
     p.add_argument("--chunk", type=int, default=None, metavar="K",
