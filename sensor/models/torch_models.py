@@ -9,11 +9,14 @@ pixels.
 
 The models, and why each is the reference's (equal in distribution, never bitwise: other random numbers):
 
-* ``elssim``, ``interval`` reset (:class:`ELSSimTorch`): Algorithm 2 step by step exactly as
-  :class:`sensor.models.step.ELSSimStep`, interval by interval for all pixels at once: electron rate (light plus
-  dark current with ``dark == "current"``), refractory-scaled expectation after a spike, Poisson count times the
-  PRNU gain, a Bernoulli(1 - exp(-mu_DC)) dark event adding theta, the Gaussian hot-pixel charge, clip at zero,
-  fire and reset to zero.
+* ``elssim``, ``interval`` reset (:class:`ELSSimTorch`): Algorithm 2 as :class:`sensor.models.step.ELSSimStep`
+  defines it, by time rescaling as the fast kernel does (:mod:`sensor.models.kernels`): the photoelectron count
+  since the last reset is a unit Poisson process in the collected expectation, so the pixel fires in the first
+  interval whose collected ``lambda_m`` (plus the dark current with ``dark == "current"``; times ``1 - f``
+  after a firing, Eq. 6) reaches a ``Gamma(k, 1)`` target, ``k = ceil(theta / g)``, or at a dark event
+  (Bernoulli ``1 - exp(-mu_DC)``, Eq. 1); the reset discards the excess and draws a new target. Interval by
+  interval for all pixels at once, without a Poisson draw (torch's CUDA Poisson sampler, cuRAND's, returns a
+  rounded normal above 4000 expected counts). The hot pixels run on the host, as below.
 * ``elssim``, ``crossing`` reset (:class:`ELSSimCrossingTorch`): the continuous-time pixel of
   :class:`sensor.models.step.ELSSimCrossingStep`, by time rescaling (as :class:`sensor.models.fast.ELSSimCrossingFast`):
   photoelectrons are a Poisson process of rate lambda_m within interval m, so the k-th one after the pixel
@@ -24,10 +27,10 @@ The models, and why each is the reference's (equal in distribution, never bitwis
   pixel collecting from ``s = max(blind, m)`` fires at ``min(s + rem / lambda_m, dark_next)`` when that lies
   before ``m + 1`` (then a new target is drawn, it is blind for ``f``, and it may fire again in the same
   interval: the pixels that fired are iterated until none does), else ``rem -= lambda_m (m + 1 - s)``.
-  The hot pixels (their charge is a current plus photoelectrons, kept >= 0; 0.1 % of ``vidar-default``) are
-  not vectorised: they run on the host, through the event-driven numba kernel on 1 x 8 sub-sensors of just
-  those pixels (:class:`sensor.models.fast.ELSSimCrossingFast`, or the reference without numba), on host
-  threads while the device works; their spike bits are copied to the device before packing.
+  The hot pixels of either reset (a Gaussian charge, or current, kept >= 0; 0.1 % of ``vidar-default``) are
+  not vectorised: they run on the host, through the event-driven numba kernel of their reset on 1 x 8
+  sub-sensors of just those pixels (:mod:`sensor.models.fast`, or the reference without numba), on host threads
+  while the device works; their spike bits are copied to the device before packing.
 * ``ideal`` (:class:`IdealTorch`): Algorithm 1, deterministic. lambda_m is evaluated in float64 from the
   pieces as the fast kernels do; with one rate per interval it is the float32 input exactly, so the spikes are
   bitwise the reference's; with keyframes a spike may move by one interval where the charge meets the
@@ -38,7 +41,7 @@ The models, and why each is the reference's (equal in distribution, never bitwis
 Randomness: block ``b`` of a stream seeded with ``seed`` draws from
 ``block_generator(seed, model, b, "torch")`` (its own spawn key); that generator spawns two children: the first
 seeds a ``torch.Generator`` on the device (one 63-bit seed), the second spawns one host generator per group of
-:data:`HOT_GROUP_PIXELS` hot pixels (crossing reset). The
+:data:`HOT_GROUP_PIXELS` hot pixels. The
 same seed on the same kind of device gives the same spikes for any chunking (blocks are fixed by absolute
 interval index); the CPU and CUDA generators differ, so a stream made on one is not bitwise the one made on the
 other.
@@ -150,11 +153,6 @@ def spike_device(device: str | None = None) -> str:
     return name
 
 
-def wants_cpu(device: str | None = None) -> bool:
-    """Whether ``device`` (or the environment variable) pins the spike stage to the CPU (validated)."""
-    return spike_device(device) == "cpu"
-
-
 # ------------------------------------------------------------------------------------------ model classes
 class _TorchModel(SpikeModel):
     """Common machinery: device, maps, lambda from segments on the device, packed output."""
@@ -164,6 +162,10 @@ class _TorchModel(SpikeModel):
     #: the simulator hands this model :class:`Segments` and takes packed frames back
     uses_segments = True
     uses_rng = True
+    #: how new Gamma targets are drawn for the pixels that fired: True for every pixel, kept under the mask of
+    #: those that fired (no host synchronisation, no gather: the GPU's choice), False for the gathered pixels
+    #: that fired only (the fewest draws: the CPU's choice); None: by device (True on CUDA). Same law.
+    dense_rounds: bool | None = None
 
     def __init__(self, profile: SensorProfile, device: str | None = None):
         super().__init__(profile)
@@ -212,6 +214,49 @@ class _TorchModel(SpikeModel):
             s0 = int(seg.start[i])
             for q in range(n):
                 yield s0 + q, (l0 if (sl is None or q == 0) else l0 + sl * float(q))
+
+    def _dense(self) -> bool:
+        return self.dense_rounds if self.dense_rounds is not None else self.device.type == "cuda"
+
+    # hot pixels on the host ---------------------------------------------------------------------
+    def _setup_hot(self, profile: SensorProfile) -> None:
+        """The hot pixels as host models (the numba kernel of the profile's reset, or the reference), in fixed
+        groups of :data:`HOT_GROUP_PIXELS`, each with its own state and random stream."""
+        hot = np.flatnonzero(profile.hot_mask.reshape(-1))
+        self.cold = self.torch.as_tensor(~profile.hot_mask.reshape(-1), device=self.device)
+        self.hot_idx = self.torch.as_tensor(hot, dtype=self.torch.int64, device=self.device)
+        self.hot_groups = [hot[i:i + HOT_GROUP_PIXELS] for i in range(0, hot.size, HOT_GROUP_PIXELS)]
+        self.hot_models = []
+        if hot.size:
+            from sensor.models.registry import get_model
+            self.hot_models = [get_model("elssim", _pixel_subprofile(profile, grp), "fast") for grp in self.hot_groups]
+
+    def _hot_group(self, j, seg, state, rng):
+        """The spikes of hot-pixel group ``j``, bool (B, its pixels) on the host."""
+        from sensor.io.bits import unpack_frames
+        grp, model = self.hot_groups[j], self.hot_models[j]
+        hseg = Segments(seg.rates[:, grp], seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, seg.m1)
+        shape = (1, int(grp.size))
+        if getattr(model, "uses_segments", False):
+            bits = model.run_segments(hseg, state["hot"][j], rng)
+            return unpack_frames(bits, shape).reshape(bits.shape[0], -1)
+        lam = hseg.dense().astype(np.float32).reshape((-1,) + shape)
+        return model.run_block(lam, state["hot"][j], rng).reshape(lam.shape[0], -1)
+
+    def _submit_hot(self, seg, state, host_rng) -> list:
+        """Start the hot-pixel groups of this block on host threads (they run while this thread drives the
+        device); one future per group."""
+        if not self.hot_models:
+            return []
+        pool = _hot_pool()
+        return [pool.submit(self._hot_group, j, seg, state, r)
+                for j, r in enumerate(host_rng.spawn(len(self.hot_models)))]
+
+    def _collect_hot(self, jobs, spk) -> None:
+        """The hot pixels' spikes into the device's spike block."""
+        if jobs:
+            hot = np.concatenate([job.result() for job in jobs], axis=1)
+            spk.index_copy_(1, self.hot_idx, self.torch.from_numpy(np.ascontiguousarray(hot)).to(self.device))
 
     def _rate(self, lam):
         return lam if self.dc is None else lam + self.dc
@@ -278,10 +323,20 @@ class IdealTorch(_TorchModel):
 
 
 class ELSSimTorch(_TorchModel):
-    """``elssim`` with the interval reset: Algorithm 2 interval by interval, vectorised over the pixels.
+    """``elssim`` with the interval reset: Algorithm 2 by time rescaling, vectorised over the pixels.
 
-    Draws per interval, in this order: Poisson (all pixels), uniform (all pixels; only with dark events),
-    normal (the hot pixels).
+    Per pixel the state holds the photoelectrons still to collect before the count since the last reset
+    reaches ``k = ceil(theta / g)``, as a ``Gamma(k, 1)`` target in expected photoelectrons (the count is a unit
+    Poisson process in the collected expectation, see :mod:`sensor.models.kernels`), and whether it fired in the
+    previous interval. Interval m collects ``lambda_m`` (plus the dark current with ``dark == "current"``;
+    times ``1 - f`` after a firing, Eq. 6); the pixel fires when that reaches the target, or at a dark event
+    (Bernoulli ``1 - exp(-mu_DC)``, Eq. 1), and then draws a new target (the reset discards the excess). The
+    hot pixels (Gaussian charge, clipped at 0) run on the host (:meth:`_setup_hot`). No Poisson draw: cuRAND's
+    Poisson sampler, which torch uses on CUDA, returns a rounded normal above 4000 expected counts; the Gamma
+    sampler is Marsaglia-Tsang's rejection method, exact.
+
+    Draws: at the stream's first block a Gamma target per pixel; per interval a uniform per pixel (with dark
+    events) and the new targets (:attr:`dense_rounds`).
     """
 
     name = "elssim"
@@ -289,42 +344,46 @@ class ELSSimTorch(_TorchModel):
     def __init__(self, profile: SensorProfile, device: str | None = None):
         super().__init__(profile, device)
         p = profile
-        torch = self.torch
-        self.theta = float(p.threshold_e)
-        self.gain = self._f64(p.prnu_gain)
+        self.k = self._f64(count_threshold(p.threshold_e, p.prnu_gain))
         self.omf = self._f64(1.0 - p.refractory_fraction.astype(np.float64))
         pd = dark_event_probability(p.dark_rate).reshape(-1)
         self.has_dark = bool(np.any(pd > 0))
         self.p_dark = self._f64(pd)
-        hot = np.flatnonzero(p.hot_mask.reshape(-1))
-        self.hot_idx = torch.as_tensor(hot, dtype=torch.int64, device=self.device)
-        self.hot_mu = self._f64(p.hot_mu.reshape(-1)[hot])
-        self.hot_sigma = self._f64(p.hot_sigma.reshape(-1)[hot])
+        self._setup_hot(p)
 
     def init_state(self) -> dict:
         torch = self.torch
-        return {"m": 0, "v": torch.zeros(self.n_pixels, dtype=torch.float64, device=self.device),
-                "spiked": torch.zeros(self.n_pixels, dtype=torch.bool, device=self.device)}
+        n, dev = self.n_pixels, self.device
+        return {"m": 0, "started": False,
+                "rem": torch.full((n,), float("nan"), dtype=torch.float64, device=dev),
+                "spiked": torch.zeros(n, dtype=torch.bool, device=dev),
+                "hot": [hm.init_state() for hm in self.hot_models]}
 
     def _block(self, seg, state, g, host_rng, spk):
         torch = self.torch
-        theta = self.theta
-        v, spiked = state["v"], state["spiked"]
-        n_hot = int(self.hot_idx.numel())
+        jobs = self._submit_hot(seg, state, host_rng)
+        rem, spiked = state["rem"], state["spiked"]
+        if not state["started"]:  # the stream starts reset
+            rem.copy_(torch._standard_gamma(self.k, generator=g))
+            state["started"] = True
+        dense = self._dense()
         for q, lam in self._lambdas(seg):
             rate = self._rate(lam)
-            expected = torch.where(spiked, rate * self.omf, rate)  # refractory (Eq. 6)
-            v += torch.poisson(expected, generator=g) * self.gain  # shot noise, PRNU
-            if self.has_dark:  # dark event (Eq. 1): one full threshold
-                u = torch.rand(self.n_pixels, generator=g, dtype=torch.float64, device=self.device)
-                v += (u < self.p_dark).to(torch.float64) * theta
-            if n_hot:  # hot-pixel charge (Eq. 4)
-                v.index_add_(0, self.hot_idx, torch.normal(self.hot_mu, self.hot_sigma, generator=g) * theta)
-            v.clamp_(min=0.0)
-            spiked = v >= theta
-            v.masked_fill_(spiked, 0.0)
-            spk[q] = spiked
-        state["v"], state["spiked"] = v, spiked
+            collected = torch.where(spiked, rate * self.omf, rate)  # refractory after a firing (Eq. 6)
+            fire = rem <= collected
+            if self.has_dark:  # a dark event (Eq. 1) fires the pixel whatever its charge
+                fire |= torch.rand(self.n_pixels, generator=g, dtype=torch.float64, device=self.device) < self.p_dark
+            fire &= self.cold
+            rem.sub_(collected)
+            if dense:
+                rem.copy_(torch.where(fire, torch._standard_gamma(self.k, generator=g), rem))
+            else:
+                idx = fire.nonzero().squeeze(1)
+                rem.index_copy_(0, idx, torch._standard_gamma(self.k.index_select(0, idx), generator=g))
+            spiked = fire
+            spk[q] = fire
+        state["spiked"] = spiked
+        self._collect_hot(jobs, spk)
 
 
 def _pixel_subprofile(profile: SensorProfile, idx: np.ndarray) -> SensorProfile:
@@ -344,29 +403,16 @@ class ELSSimCrossingTorch(_TorchModel):
     """
 
     name = "elssim"
-    #: how the firings after each interval's first pass are handled: True whole arrays under a mask
-    #: (:meth:`_rounds_dense`), False the gathered pixels (:meth:`_rounds_compact`), None by device (dense on CUDA)
-    dense_rounds: bool | None = None
 
     def __init__(self, profile: SensorProfile, device: str | None = None):
         super().__init__(profile, device)
         p = profile
-        torch = self.torch
         self.k = self._f64(count_threshold(p.threshold_e, p.prnu_gain))
         self.f = self._f64(p.refractory_fraction)
         mu = p.dark_rate.astype(np.float64).reshape(-1)
         self.has_dark = bool(np.any(mu > 0))
         self.mu = self._f64(mu)
-        hot = np.flatnonzero(p.hot_mask.reshape(-1))
-        self.hot_np = hot
-        #: the hot pixels in fixed groups of HOT_GROUP_PIXELS, each its own host model, state and random stream
-        self.hot_groups = [hot[i:i + HOT_GROUP_PIXELS] for i in range(0, hot.size, HOT_GROUP_PIXELS)]
-        self.cold = torch.as_tensor(~p.hot_mask.reshape(-1), device=self.device)
-        self.hot_idx = torch.as_tensor(hot, dtype=torch.int64, device=self.device)
-        self.hot_models = []
-        if hot.size:
-            from sensor.models.registry import get_model
-            self.hot_models = [get_model("elssim", _pixel_subprofile(p, grp), "fast") for grp in self.hot_groups]
+        self._setup_hot(p)
 
     def init_state(self) -> dict:
         torch = self.torch
@@ -431,25 +477,9 @@ class ELSSimCrossingTorch(_TorchModel):
                 return
             fired = again
 
-    def _hot_group(self, j, seg, state, rng):
-        """The spikes of hot-pixel group ``j``, bool (B, its pixels) on the host (numba kernel, or the reference)."""
-        from sensor.io.bits import unpack_frames
-        grp, model = self.hot_groups[j], self.hot_models[j]
-        hseg = Segments(seg.rates[:, grp], seg.start, seg.length, seg.lo, seg.nk, seg.w, seg.m0, seg.m1)
-        shape = (1, int(grp.size))
-        if getattr(model, "uses_segments", False):
-            bits = model.run_segments(hseg, state["hot"][j], rng)
-            return unpack_frames(bits, shape).reshape(bits.shape[0], -1)
-        lam = hseg.dense().astype(np.float32).reshape((-1,) + shape)
-        return model.run_block(lam, state["hot"][j], rng).reshape(lam.shape[0], -1)
-
     def _block(self, seg, state, g, host_rng, spk):
         torch = self.torch
-        hot_jobs = []
-        if self.hot_models:  # the groups on host threads while this one drives the device
-            pool = _hot_pool()
-            hot_jobs = [pool.submit(self._hot_group, j, seg, state, r)
-                        for j, r in enumerate(host_rng.spawn(len(self.hot_models)))]
+        hot_jobs = self._submit_hot(seg, state, host_rng)
         rem, dark_next, blind = state["rem"], state["dark_next"], state["blind"]
         if not state["started"]:  # the stream starts reset and not blind at t = 0
             rem.copy_(torch._standard_gamma(self.k, generator=g))
@@ -457,7 +487,7 @@ class ELSSimCrossingTorch(_TorchModel):
                 dark_next.copy_(self._exp_after(torch.zeros_like(blind), self.mu, g))
             state["started"] = True
         cold = self.cold
-        dense = self.dense_rounds if self.dense_rounds is not None else self.device.type == "cuda"
+        dense = self._dense()
         for q, lam in self._lambdas(seg):
             lam = self._rate(lam)
             m = float(seg.m0 + q)
@@ -472,6 +502,4 @@ class ELSSimCrossingTorch(_TorchModel):
                 self._rounds_dense(spk[q], fired, tau, lam, m1, state, g)
             else:
                 self._rounds_compact(spk[q], fired, tau, lam, m1, state, g)
-        if hot_jobs:
-            hot = np.concatenate([job.result() for job in hot_jobs], axis=1)
-            spk.index_copy_(1, self.hot_idx, torch.from_numpy(np.ascontiguousarray(hot)).to(self.device))
+        self._collect_hot(hot_jobs, spk)

@@ -41,9 +41,9 @@ from sensor.models.step import block_generator  # noqa: E402
 HAVE_CUDA = torch_models.cuda_works()
 DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.cuda,
                                                pytest.mark.skipif(not HAVE_CUDA, reason="no working CUDA device")])]
-#: the crossing reset's tests also run the CUDA path's dense firing rounds on the CPU ("cpu-dense"): in the default
-#: run for the every-effect and reproducibility tests, with --runslow for every oracle
-CROSSING_DEVICES = DEVICES + [pytest.param("cpu-dense", marks=pytest.mark.slow)]
+#: the statistical tests also run the CUDA path's dense draws on the CPU ("cpu-dense"): in the default run for the
+#: every-effect and reproducibility tests, with --runslow for every oracle
+STAT_DEVICES = DEVICES + [pytest.param("cpu-dense", marks=pytest.mark.slow)]
 DENSE_DEVICES = DEVICES + ["cpu-dense"]
 ALPHA = 1e-4
 
@@ -54,10 +54,10 @@ def prof(h, w, theta, **kw):
 
 
 def run(rate, p, device, model="elssim", seed=0, t_s=None, impl="torch", chunk=None):
-    """sensor.simulate with ``impl``; ``device`` "cpu-dense": torch on the CPU with the crossing reset's dense
-    firing rounds (the path CUDA takes, :meth:`ELSSimCrossingTorch._rounds_dense`)."""
+    """sensor.simulate with ``impl``; ``device`` "cpu-dense": torch on the CPU with the dense draws of new Gamma
+    targets (the path CUDA takes, :attr:`torch_models._TorchModel.dense_rounds`)."""
     dense = device == "cpu-dense"
-    cls = torch_models.ELSSimCrossingTorch
+    cls = torch_models._TorchModel
     try:
         cls.dense_rounds = True if dense else None
         return sensor.simulate(rate, p, model, seed=seed, t_s=t_s, implementation=impl,
@@ -95,7 +95,7 @@ def ks_agree(a, b, what=""):
 
 
 # ----------------------------------------------------------------------------------- interval reset
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_interval_constant_light_agrees_with_reference_and_renewal_oracle(device):
     lam, k, f = 1.7, 20, 0.08
     H, W, T = 30, 40, 2500
@@ -114,7 +114,7 @@ def test_interval_constant_light_agrees_with_reference_and_renewal_oracle(device
     assert abs(c.var(ddof=1) - var_pred) < Z * se_var + 2.0, (c.var(ddof=1), var_pred)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_interval_dark_events_and_dark_current_match_their_oracles(device):
     H, W, T, mu = 20, 25, 6000, 0.05
     s = run(np.zeros((T, H, W), np.float32), prof(H, W, 100.0, dark_rate=mu, refractory_s=0.3 * INTERVAL_S),
@@ -135,7 +135,7 @@ def test_interval_dark_events_and_dark_current_match_their_oracles(device):
     assert abs(a.mean() - m) < Z * np.sqrt(v / a.size), (a.mean(), m)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_interval_refractory_under_high_light(device):
     lam, k, f = 6.0, 12, 0.6  # ISI ~ 2 intervals: every other interval is a refractory one
     H, W, T = 25, 30, 1500
@@ -147,7 +147,7 @@ def test_interval_refractory_under_high_light(device):
     assert m - m0 > 10 * Z * np.sqrt(v / a.size)  # the refractory effect is far beyond the noise
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_interval_prnu_count_ratio_per_gain(device):
     lam, theta, T, H, W = 2.5, 20.0, 2000, 30, 40
     p = prof(H, W, theta, prnu_sigma=0.15, seed=4)
@@ -170,7 +170,7 @@ def test_interval_prnu_count_ratio_per_gain(device):
     assert abs(r_obs - r_fast) < Z * se and r_obs < 1.0 - 4 * Z * se, (r_obs, r_fast, se)
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_interval_hot_pixels_agree_with_reference(device):
     H, W, T = 20, 20, 3000
     p = prof(H, W, 200.0, dark_rate=0.002, hot_pixel_fraction=0.1, hot_mu=0.05, hot_mu_spread=0.5, hot_sigma=0.03,
@@ -188,7 +188,7 @@ def test_interval_hot_pixels_agree_with_reference(device):
     ks_agree(isis(ts[:, hot][:, :, None]), isis(rs[:, hot][:, :, None]), "hot ISI")
 
 
-@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_interval_time_varying_keyframes_agree_bin_by_bin(device):
     rng = np.random.default_rng(10)
     H, W, K = 20, 30, 121  # keyframes every 20 intervals -> 2400 intervals, over three torch blocks
@@ -211,7 +211,7 @@ def crossing(h, w, theta, **kw):
     return prof(h, w, theta, reset="crossing", **kw)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_constant_light_matches_the_phase_chain_and_fast_isi(device):
     k, lam = 20, 9.0
     H, W, T = 20, 20, 1500
@@ -233,7 +233,7 @@ def test_crossing_constant_light_matches_the_phase_chain_and_fast_isi(device):
     ks_agree(nth_isis(ts2, 5), nth_isis(fs, 5), "crossing ISI")
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_dark_only_is_a_poisson_process_and_is_lost_while_blind(device):
     H, W, T = 20, 20, 8000
     p = crossing(H, W, 1000.0, dark_rate=0.05, dark_rate_spread=0.8, seed=3)
@@ -251,7 +251,7 @@ def test_crossing_dark_only_is_a_poisson_process_and_is_lost_while_blind(device)
     assert abs(-np.expm1(-mu) - r) > 4 * Z * se  # without the blind loss the rate would be 1 - exp(-mu)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_dark_current_agrees_with_fast_and_renewal(device):
     # dark == "current": d electrons per interval count with the light; no light: firings every Gamma(k, d)
     H, W, T, d, k = 20, 20, 3000, 2.0, 8
@@ -265,7 +265,7 @@ def test_crossing_dark_current_agrees_with_fast_and_renewal(device):
     assert abs(ts.mean() - r) < Z * se + 2.0 / T, (ts.mean(), r)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(device):
     lam, k, T, H, W = 6.0, 12, 3000, 20, 20
     for f in (0.0, 0.5):
@@ -278,7 +278,7 @@ def test_crossing_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(d
     assert theory.crossing_rates(lam, k, 0.5)[1] < theory.crossing_rates(lam, k, 0.0)[1] - 10 * (Z * se + 2.0 / T)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_prnu_gain_sets_the_photoelectrons_needed(device):
     lam, theta, T, H, W = 3.0, 20.0, 2000, 30, 20
     gain = np.where(np.arange(H * W).reshape(H, W) % 2 == 0, 0.8, 1.25).astype(np.float32)
@@ -292,7 +292,7 @@ def test_crossing_prnu_gain_sets_the_photoelectrons_needed(device):
         assert abs(counts.mean() - expected) < Z * np.sqrt(var / counts.size), (g, counts.mean(), expected)
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_hot_pixel_current_fires_at_every_whole_threshold(device):
     # no light, no dark, f = 0: the firings by interval T are exactly floor(S_T), S_T ~ N(T mu, T sigma^2)
     H, W, T, mu, sig = 10, 10, 3000, 0.07, 0.01
@@ -326,7 +326,7 @@ def test_crossing_every_effect_agrees_with_reference_and_fast(device):
         ks_agree(nth_isis(ts[:, ~hot], 5), nth_isis(other[:, ~hot], 5), f"5th ISI vs {impl}")
 
 
-@pytest.mark.parametrize("device", CROSSING_DEVICES)
+@pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_keyframed_input_follows_the_exact_phase_chain(device):
     H, W, k, K = 30, 40, 15, 31  # keyframes every 20 intervals -> 600 intervals
     t = np.arange(K) * 1e-3
