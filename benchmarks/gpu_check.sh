@@ -20,11 +20,17 @@
 #      folder: render2spike run rotating_disk --set camera.profile=vidar-default --duration 0.2 at --lux 5 and 1
 #      (full 250 x 400 sensor; goal: <= 2 s and <= 0.8 s), then benchmarks/static_reuse.py --rounds 1
 #      (static-region reuse against whole frames) in what is left of GOAL_T.
+#   9. with SPIKE_T=seconds (0 or unset: skipped), the spike stage on the GPU: the CUDA tests of the torch
+#      implementation (tests/sensor/test_torch_models.py -m cuda: equality in distribution with the reference and
+#      the numba kernels, on cuda), then benchmarks/spike_stage.py --device cuda on the full sensor with the numba
+#      thread-scaling rows (RENDER2SPIKE_THREADS 1 2 4 8 16; SPIKE_ARGS overrides its options), in what is left of
+#      SPIKE_T (report in OUT_DIR/spike/spike_stage.md).
 # REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
 # the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: auto
 # only, the README's command as it stands; its log is demo.txt, another launch's demo_LAUNCH.txt).
 # Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
 #        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] [DATASET_T=120] [GOAL_T=120] \
+#        [SPIKE_T=300] [SPIKE_ARGS="spike_stage.py options"] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -126,6 +132,28 @@ done
 left=$(( GOAL_T - ($(date +%s) - gt0) ))
 [ "$left" -gt 30 ] && { timeout "$left" python3 benchmarks/static_reuse.py --rounds 1 --out "$OUT/reuse" \
   > "$OUT/reuse.txt" 2>&1; stamp "static reuse benchmark exit $?"; }
+}
+[ "${SPIKE_T:-0}" -gt 0 ] && {
+st0=$(date +%s)
+mkdir -p "$OUT/spike"
+python3 -c "from sensor.models.torch_models import cuda_works; import torch; print('torch', torch.__version__, \
+  'cuda', torch.version.cuda); assert cuda_works(), 'torch finds no working CUDA device'" > "$OUT/spike/torch_env.txt" 2>&1 \
+  || { stamp "torch sees no working CUDA device (see spike/torch_env.txt): the CUDA tests would only skip"; fail=1; }
+stamp "spike stage: torch implementation's CUDA tests (timeout $(( SPIKE_T / 3 )) s)"
+RENDER2SPIKE_SPIKE_DEVICE=cuda timeout $(( SPIKE_T / 3 )) python3 -m pytest tests/sensor/test_torch_models.py -m cuda -q \
+  -p no:cacheprovider -rfEs --durations=10 > "$OUT/spike/pytest_torch_cuda.txt" 2>&1
+rc=$?; [ $rc -eq 0 ] || fail=1
+stamp "spike-stage CUDA tests exit $rc ($(tail -1 "$OUT/spike/pytest_torch_cuda.txt"))"
+left=$(( SPIKE_T - ($(date +%s) - st0) ))
+if [ "$left" -gt 20 ]; then
+  stamp "spike stage benchmark: torch on cuda against numba at 1-16 threads (timeout $left s)"
+  timeout "$left" python3 benchmarks/spike_stage.py --device cuda --out "$OUT/spike/spike_stage.md" \
+    ${SPIKE_ARGS:---threads 1 2 4 8 16 --size 250x400 --intervals 2000} > "$OUT/spike/spike_stage.txt" 2>&1
+  rc=$?; [ $rc -eq 0 ] || fail=1
+  stamp "spike stage benchmark exit $rc"
+else
+  stamp "spike stage benchmark: no time left"; fail=1
+fi
 }
 [ -n "${REPRO_SPP:-}" ] && {
 stamp "two runs of the same render (benchmarks/repro_check.py, spp ${REPRO_SPP}, default launch)"

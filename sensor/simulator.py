@@ -32,20 +32,27 @@ class SpikeSimulator:
     seed : int
         Seed of every random draw of this stream.
     implementation : str
-        ``fast`` (default; event-driven where available) or ``reference``
-        (the step-by-step simulator that defines the model).
+        ``auto`` (default: ``torch`` on a working CUDA device, else ``fast``), ``fast``
+        (event-driven numba kernels on the CPU), ``torch`` (PyTorch, on ``device``) or
+        ``reference`` (the step-by-step simulator that defines the model); see
+        :func:`sensor.models.registry.get_model`.
     per_interval : bool
         True: the rate comes as one value per interval (no timestamps).
         False: keyframes with timestamps, interpolated piecewise-linearly.
+    device : str, optional
+        Device of the ``torch`` implementation (``cpu``, ``cuda``, ``cuda:N``; default
+        ``$RENDER2SPIKE_SPIKE_DEVICE``, else CUDA when it works). With ``auto``, ``cpu`` picks ``fast``.
     """
 
-    def __init__(self, profile, model: str = "elssim", seed: int = 0, *, implementation: str = "fast",
-                 per_interval: bool = False):
+    def __init__(self, profile, model: str = "elssim", seed: int = 0, *, implementation: str = "auto",
+                 per_interval: bool = False, device: str | None = None):
         self.profile = profile if isinstance(profile, SensorProfile) else SensorProfile.load(profile)
         self.model_name = model
         self.seed = int(seed)
-        self.model: SpikeModel = get_model(model, self.profile, implementation)
+        self.model: SpikeModel = get_model(model, self.profile, implementation, device=device)
         self.implementation = self.model.implementation
+        #: where the spikes are made: the torch model's device, else the CPU
+        self.device = str(getattr(self.model, "device_name", "cpu"))
         self.schedule = RateSchedule(self.profile.interval_s, per_interval=per_interval)
         self.state = self.model.init_state()
         self.block = int(self.model.block_intervals)
@@ -249,14 +256,14 @@ class SpikeSimulator:
     def describe(self) -> dict:
         """Metadata of this stream, stored with the spikes."""
         return {"model": self.model_name, "reset": self.profile.reset if self.model_name == "elssim" else None,
-                "implementation": self.implementation, "seed": self.seed,
+                "implementation": self.implementation, "device": self.device, "seed": self.seed,
                 "block_intervals": self.block, "profile_id": self.profile.name,
                 "interval_s": self.profile.interval_s, "threshold_e": self.profile.threshold_e,
                 "packed_bit_order": "little"}
 
 
-def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *, implementation: str = "fast",
-             chunk: int | None = None) -> np.ndarray:
+def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *, implementation: str = "auto",
+             chunk: int | None = None, device: str | None = None) -> np.ndarray:
     """Simulate a spike stream in one call.
 
     Parameters
@@ -273,9 +280,12 @@ def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *,
     t_s : array (K,), optional
         Keyframe times [s].
     implementation : str
-        ``fast`` (default) or ``reference`` (the step simulator).
+        ``auto`` (default), ``fast``, ``torch`` or ``reference`` (the step simulator); see
+        :class:`SpikeSimulator`.
     chunk : int, optional
         Feed the input this many keyframes at a time (for testing the streaming path).
+    device : str, optional
+        Device of the ``torch`` implementation (see :class:`SpikeSimulator`).
 
     Returns
     -------
@@ -293,7 +303,8 @@ def simulate(rate_e, profile, model: str = "elssim", seed: int = 0, t_s=None, *,
                              field="t_s")
         from sensor.rates import check_times, n_intervals_spanned
         check_times(t_s)
-    sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=t_s is None)
+    sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=t_s is None,
+                         device=device)
     if t_s is not None and n_intervals_spanned(t_s[0], t_s[-1], sim.profile.interval_s) < 1:
         raise InputError(f"the keyframes span {t_s[-1] - t_s[0]:.6g} s ({t_s.size} keyframe(s)): less than one whole "
                          f"interval of {sim.profile.interval_s * 1e6:g} us (need at least two keyframes one interval "

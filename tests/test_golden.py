@@ -18,6 +18,12 @@ from tests.render.conftest import needs_mitsuba
 GOLDEN = Path(__file__).parent / "golden" / "golden.json"
 
 
+@pytest.fixture(autouse=True)
+def _spikes_on_the_cpu(monkeypatch):
+    """The hashes are of the numba kernels: on a machine with CUDA, ``auto`` would pick the torch implementation."""
+    monkeypatch.setenv("RENDER2SPIKE_SPIKE_DEVICE", "cpu")
+
+
 def _llvm_variant_works() -> bool:
     try:
         from render2spike.render.backend import find_libllvm, probe_variant

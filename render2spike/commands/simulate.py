@@ -36,12 +36,13 @@ examples:
   render2spike simulate out/frames --out spikes.npz
   render2spike simulate rate.npz --out spikes.dat --model isi --seed 7
   render2spike simulate out/frames --out ref.npz --reference   # step-by-step reference simulator
+  render2spike simulate out/frames --out gpu.npz --implementation torch --device cuda  # PyTorch on the GPU
   render2spike simulate rate.npz --out alg2.npz --reset interval  # Algorithm 2's end-of-interval reset
 """
 
 
 def register(sub) -> None:
-    from sensor.models.registry import MODELS
+    from sensor.models.registry import IMPLEMENTATIONS, MODELS
     from sensor.profile import RESETS
 
     from render2spike.commands._common import add_overwrite
@@ -56,8 +57,16 @@ def register(sub) -> None:
     p.add_argument("--reset", choices=RESETS, default=None,
                    help="pixel reset of elssim, overriding the profile's: 'crossing' (fires and resets the moment "
                         "the charge reaches the threshold; vidar-default) or 'interval' (Algorithm 2 as published)")
+    p.add_argument("--implementation", choices=IMPLEMENTATIONS, default=None,
+                   help="spike simulator: 'auto' (default: 'torch' on a working CUDA GPU, else 'fast'), 'fast' "
+                        "(event-driven numba kernels on the CPU cores), 'torch' (PyTorch, on --device) or "
+                        "'reference' (the step-by-step simulator that defines the model)")
+    p.add_argument("--device", default=None, metavar="DEVICE",
+                   help="device of the torch implementation: auto, cpu, cuda or cuda:N (default: "
+                        "$RENDER2SPIKE_SPIKE_DEVICE, else auto: CUDA when it works); with --implementation auto, "
+                        "'cpu' picks 'fast'")
     p.add_argument("--reference", action="store_true",
-                   help="use the step-by-step reference simulator instead of the fast event-driven one")
+                   help="use the step-by-step reference simulator (the same as --implementation reference)")
     p.add_argument("--chunk", type=int, default=None, metavar="K",
                    help="keyframes read per step (the result does not depend on it). Default: the keyframes of "
                         "one simulator block (1000 intervals) per read, so no block's keyframes are joined from "
@@ -98,8 +107,9 @@ def _run(args, frozen: dict) -> int:
     dt = time.perf_counter() - t0
     n = writer.n_intervals
     rate_hz = writer.n_spikes / max(n * profile.height * profile.width, 1) / profile.interval_s
+    impl = sim.implementation if sim.implementation != "torch" else f"torch on {sim.device}"
     say(f"wrote {args.out}: {n} intervals ({n * profile.interval_s:.4f} s of camera time), {profile.height}x"
-        f"{profile.width}, model {args.model} ({sim.implementation}), seed {args.seed}; mean spike rate "
+        f"{profile.width}, model {args.model} ({impl}), seed {args.seed}; mean spike rate "
         f"{rate_hz:.1f} Hz per pixel; {dt:.1f} s wall")
     return 0
 
@@ -166,9 +176,14 @@ def _prepare(args, say):
     from sensor.io.stream import open_stream
 
     from render2spike.commands._common import check_output
+    implementation = getattr(args, "implementation", None)
+    if args.reference and implementation not in (None, "reference"):
+        raise InputError(f"--reference and --implementation {implementation} disagree; give one of them",
+                         field="--implementation")
+    implementation = "reference" if args.reference else (implementation or "auto")
     check_output(args.out, inputs=[args.input], overwrite=args.overwrite, say=say)
     stream = open_stream(args.input, args.profile, args.model, args.seed, reset=getattr(args, "reset", None),
-                         implementation="reference" if args.reference else "fast", say=say)
+                         implementation=implementation, device=getattr(args, "device", None), say=say)
     if args.chunk is not None and args.chunk < 1:
         raise InputError(f"--chunk must be a positive number of keyframes, got {args.chunk}", field="--chunk")
     return stream.start(args.chunk)  # the reader thread starts, while numba loads the kernels

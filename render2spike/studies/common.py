@@ -90,7 +90,9 @@ def simulate_clip(rate_kf, t_s, profile, model_spec: str, seed: int, preroll: in
     model, _ = parse_model_spec(model_spec)
     T = n_intervals_spanned(t_s[0], t_s[-1], profile.interval_s)
     r, t = preroll_keyframes(rate_kf, t_s, int(preroll), seed, profile.interval_s)
-    spikes = open_stream(r, profile, model, int(seed), t_s=t).start(warm_up=False).collect()
+    # the numba kernels on any machine (not auto's torch where CUDA works): datasets record 'fast' and the same
+    # spikes everywhere
+    spikes = open_stream(r, profile, model, int(seed), t_s=t, implementation="fast").start(warm_up=False).collect()
     clip = range(len(spikes))[int(preroll):int(preroll) + T]
     if len(clip) != T:
         raise InputError(f"pre-rolled stream holds {len(spikes)} intervals, expected {preroll} + {T}",

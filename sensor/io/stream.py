@@ -150,7 +150,8 @@ class SpikeStream:
 
 
 def open_stream(source, profile, model: str = "elssim", seed: int = 0, *, t_s=None, reset: str | None = None,
-                implementation: str = "fast", say: Callable[[str], None] | None = None) -> SpikeStream:
+                implementation: str = "auto", say: Callable[[str], None] | None = None,
+                device: str | None = None) -> SpikeStream:
     """Open a rate input and make the simulator that streams it (nothing is read yet; see
     :meth:`SpikeStream.start`).
 
@@ -158,7 +159,7 @@ def open_stream(source, profile, model: str = "elssim", seed: int = 0, *, t_s=No
     (with keyframe times ``t_s``, or one row per interval), or a source of :mod:`sensor.io.reader`.
     ``profile``: a :class:`SensorProfile` or its name / path; its centred window is used when the input is
     smaller (:func:`profile_for_input`), with ``reset`` replacing its pixel reset when given. ``say`` gets the
-    notes and warnings (None: silent). Raises InputError when the input spans less than one interval.
+    notes and warnings (None: silent). ``implementation`` and ``device``: see :class:`SpikeSimulator`. Raises InputError when the input spans less than one interval.
     """
     say = say or _quiet
     where = source if isinstance(source, (str, os.PathLike)) else getattr(source, "path", None)  # as given
@@ -173,7 +174,8 @@ def open_stream(source, profile, model: str = "elssim", seed: int = 0, *, t_s=No
         if rendered_for and rendered_for != profile.name:
             say(f"warning: the frames were rendered for profile '{rendered_for}' (its QE weights Phi); simulating "
                 f"with '{profile.name}' uses that QE but this profile's pixel area and noise maps")
-        sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=src.per_interval)
+        sim = SpikeSimulator(profile, model, seed, implementation=implementation, per_interval=src.per_interval,
+                             device=device)
         if src.n_intervals(profile.interval_s) < 1:
             what = "keyframes span" if not src.per_interval else "input holds"
             span = (f"{src.t_s[-1] - src.t_s[0]:.6g} s ({src.n} keyframe(s))" if not src.per_interval else "no rows")

@@ -23,7 +23,8 @@ The models (registered in :mod:`sensor.models.registry`):
 
 Each model may have several *implementations* (``reference``: the
 step-by-step simulator, one interval at a time, here; ``fast``: event-driven, see
-:mod:`sensor.models.fast`). The reference is the definition.
+:mod:`sensor.models.fast`; ``torch``: PyTorch on a GPU or the CPU, see
+:mod:`sensor.models.torch_models`). The reference is the definition.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ STREAM_KEYS = {"ideal": 0, "elssim": 1, "isi": 2}
 
 def block_generator(seed: int, model: str, block_index: int, implementation: str = "reference") -> np.random.Generator:
     """The generator of one block: a child of ``seed`` keyed by model, implementation and block index."""
-    impl_key = {"reference": 0, "fast": 1}.get(implementation, 7)
+    impl_key = {"reference": 0, "fast": 1, "torch": 2}.get(implementation, 7)
     ss = np.random.SeedSequence(int(seed), spawn_key=(STREAM_KEYS.get(model, 99), impl_key, int(block_index)))
     return np.random.Generator(np.random.PCG64(ss))
 

@@ -70,6 +70,8 @@ def record(work: Path) -> dict:
 
 if __name__ == "__main__":
     import contextlib
+    import os
+    os.environ.setdefault("RENDER2SPIKE_SPIKE_DEVICE", "cpu")  # the numba kernels, even where CUDA works
     with tempfile.TemporaryDirectory() as d, contextlib.redirect_stdout(sys.stderr):
         res = record(Path(d))
     print(json.dumps(res, indent=1, sort_keys=True))

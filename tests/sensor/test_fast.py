@@ -127,7 +127,8 @@ def test_schedule_segments_stream_like_rates():
 
 
 # ----------------------------------------------------------------------------------------- contracts
-def test_fast_is_the_default_and_reference_is_selectable():
+def test_fast_is_the_default_and_reference_is_selectable(monkeypatch):
+    monkeypatch.setenv("RENDER2SPIKE_SPIKE_DEVICE", "cpu")  # the default, auto, is fast on the CPU (torch on CUDA)
     prof = profile(4, 8, 10.0)
     assert sensor.SpikeSimulator(prof, "elssim").implementation == "fast"
     assert sensor.SpikeSimulator(prof, "elssim", implementation="reference").implementation == "reference"
