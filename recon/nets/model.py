@@ -114,7 +114,7 @@ class RSIRNet(nn.Module):
 
         The all-window rate's excess over each pixel's dark floor (``maps`` channel 0; hot pixels, channel 2,
         left out), averaged over the pixels and times ``n_windows * window``, floored at 1e-3. In dim light
-        the dark spikes make :meth:`level` nearly constant (0.5, 1 and 2 lux differ by under 3 % in the
+        the dark spikes make :meth:`level` nearly constant (0.5, 1 and 2 lux differ by about 4 % in the
         mean count of the default sensor) while the light count still doubles with the light; without maps
         it is :meth:`level`.
         """
