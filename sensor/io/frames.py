@@ -26,6 +26,9 @@ A *frames folder* holds the time-varying irradiance of a scene:
 Between timestamps the sensor interprets ``Phi`` piecewise-linearly in time
 (see :mod:`sensor.rates`). Rows are stored top-down (row 0 is the top of the
 image, as seen by the camera).
+
+:class:`MemoryFrameSequence` holds the same frames in memory (float32 Phi, a manifest, no file) and is read
+like a folder, to the same values.
 """
 
 from __future__ import annotations
