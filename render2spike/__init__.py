@@ -15,7 +15,7 @@ The Python API of this stage (imported lazily: ``import render2spike`` does not 
 * :func:`load_scene` (scene file or bundled name -> validated :class:`Scene`)
 * :func:`render_scene` (:class:`Scene` -> frames folder; returns :class:`RenderResult`)
 * :func:`run_pipeline` (the ``render2spike run`` command as a function)
-* :func:`simulate_frames` (frames folder -> bit-packed spikes with :class:`sensor.SpikeSimulator`)
+* :func:`simulate_frames` (frames folder or frames in memory -> bit-packed spikes with :class:`sensor.SpikeSimulator`)
 * :func:`bundled_scenes` (names of the scenes shipped with the package)
 * :class:`SceneRenderer` (render single frames at any time)
 """

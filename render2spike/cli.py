@@ -34,7 +34,7 @@ seeds: --seed is always the spike seed (the noise of the simulated camera);
 --render-seed seeds the Monte Carlo render where a command renders.
 
 examples:
-  render2spike run rotating_disk --out out/demo
+  render2spike run rotating_disk --out out/demo --keep-frames
   render2spike simulate out/demo/frames --out spikes.dat --seed 1
   render2spike info out/demo/spikes.npz
 

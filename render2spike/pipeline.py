@@ -1,6 +1,9 @@
 """The one-command pipeline: scene -> irradiance frames -> spikes -> TFP preview -> summary.
 
-``OUT/frames/``   the rendered frames folder (resumable, see :mod:`render2spike.render.job`)
+``OUT/frames/``   the rendered frames folder, only with ``keep_frames`` (resumable, see :mod:`render2spike.render.job`);
+                 without it the keyframes are held in memory (:mod:`render2spike.render.memory`: float32 Phi,
+                 4 H W bytes per keyframe, the whole clip until the previews are made) and handed to the
+                 simulator without a file, the same values and spikes as through the folder
 ``OUT/spikes.npz`` the spike stream (bool (T, H, W) bit-packed, with metadata)
 ``OUT/spikes.dat`` the same stream in the SpikeCV .dat layout (with ``dat=True``)
 ``OUT/preview.png`` ground-truth irradiance, one TFP window and the whole-clip TFP
@@ -20,7 +23,8 @@ from sensor.io.fileio import atomic_path, provenance, write_json_atomic, write_t
 
 
 def simulate_frames(frames_dir, profile, model: str = "elssim", seed: int = 0, progress: bool = True):
-    """Stream a frames folder through :class:`sensor.SpikeSimulator` (:func:`sensor.io.stream.open_stream`).
+    """Stream a frames folder, or frames in memory (:class:`sensor.io.frames.MemoryFrameSequence`), through
+    :class:`sensor.SpikeSimulator` (:func:`sensor.io.stream.open_stream`).
 
     Returns the spikes as :class:`sensor.io.spikefile.PackedSpikes` (bit-packed, 1 bit per pixel-interval)
     and the frame sequence.
@@ -108,15 +112,20 @@ def _read_manifest(frames: Path) -> dict:
 
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
-                 dat: bool = False, variant: str | None = None, log=print, launch: str = "auto") -> dict:
-    """Render ``scene`` into ``out/frames``, simulate spikes, write previews and a summary; returns the summary.
+                 dat: bool = False, variant: str | None = None, log=print, launch: str = "auto",
+                 keep_frames: bool = False) -> dict:
+    """Render ``scene``, simulate spikes, write previews and a summary; returns the summary.
+
+    The keyframes are held in memory and handed to the simulator (nothing is written before the render is
+    done, and a rerun renders again), or with ``keep_frames`` rendered into the frames folder ``out/frames``
+    (resumable). A frames folder already in ``out`` is rendered into (resumed) as with ``keep_frames``.
 
     ``seed`` is the spike seed (the render seed is the scene's ``render.seed``). ``variant``: the Mitsuba
     variant, as :func:`render2spike.render.backend.mitsuba` takes it (None: ``$RENDER2SPIKE_VARIANT``, else the
     automatic choice; ``"auto"``: the automatic choice). ``launch``: how each frame's render is launched
     (``auto``, ``film`` or ``frozen``, :func:`render2spike.render.job.render_scene`; the summary records
     the launch taken). Rerunning into ``out``
-    resumes the render; an ``out`` whose summary records another scene, model, seed or profile is refused
+    resumes a kept render; an ``out`` whose summary records another scene, model, seed or profile is refused
     (InputError) unless ``overwrite``.
     """
     from sensor.errors import InputError
@@ -157,12 +166,20 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
             raise InputError(f"holds a run with another {', '.join(diff)} ("
                              + ", ".join(f"{k} {old.get(k)!r} -> {now[k]!r}" for k in diff)
                              + "); pass --overwrite to replace it, or choose another --out." + hint, path=out)
+    kept = bool(keep_frames) or (out / "frames").exists()
+    if kept and not keep_frames:
+        log(f"run: {out / 'frames'} exists: rendering into it (resumed where it can be), as with --keep-frames")
     created = not out.exists()
+    if kept:
+        target = out / "frames"
+    else:
+        from .render.memory import MemorySink
+        target = MemorySink(where=f"{sc.path} (frames in memory)")
     try:
-        res = render_scene(sc, out / "frames", overwrite=overwrite, progress=progress, variant=variant, log=log,
+        res = render_scene(sc, target, overwrite=overwrite, progress=progress, variant=variant, log=log,
                            launch=launch)
     except BaseException:
-        if created:  # the render left nothing (it removes a frames folder it wrote nothing into): no empty OUT
+        if created and kept:  # the render left nothing (it removes a frames folder it wrote nothing into)
             import contextlib
             with contextlib.suppress(OSError):
                 out.rmdir()
@@ -171,11 +188,13 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
 
     t1 = time.perf_counter()
     prof = sc.profile
-    spikes, seq = simulate_frames(out / "frames", prof, model, seed, progress)
+    out.mkdir(parents=True, exist_ok=True)
+    spikes, seq = simulate_frames(out / "frames" if kept else target.frames, prof, model, seed, progress)
+    del target  # the frames in memory are held by ``seq`` alone, until the previews and summary are made
     write_spikes(out / "spikes.npz", packed=spikes.packed, height=prof.height, width=prof.width,
                  interval_s=prof.interval_s, model=model, profile_id=prof.name,
-                 seed=seed, source=str(out / "frames"), extra={"scene": sc.name, "scene_hash": res.scene_hash,
-                                                               "illuminance_lux": sc.illuminance_lux})
+                 seed=seed, source=str(out / "frames") if kept else f"{sc.path} (frames rendered in memory)",
+                 extra={"scene": sc.name, "scene_hash": res.scene_hash, "illuminance_lux": sc.illuminance_lux})
     files = {}
     if dat:
         from sensor.io.spikefile import packed_to_dat
@@ -207,6 +226,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         "seed": seed,
         "frames": res.n_frames,
         "frames_rendered_now": res.n_rendered,
+        "frames_kept": kept,
         "spp": res.spp,
         "variant": m.get("variant"),
         "launch": m.get("launch", "film"),
@@ -219,10 +239,13 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
         "mean_focal_plane_phi_e_per_s_m2": phi_mean,
         "seconds": {"render": t_render, "simulate": t_sim, "preview": t_prev,
                     "total": time.perf_counter() - t0},
-        "files": {"frames": str(out / "frames"), "spikes": str(out / "spikes.npz"), **files, **prev},
+        "files": {**({"frames": str(out / "frames")} if kept else {}), "spikes": str(out / "spikes.npz"), **files,
+                  **prev},
         "provenance": provenance(stage="run"),
     }
     write_json_atomic(out / "summary.json", summary)
+    kept_text = ("kept in `frames/` (a rerun resumes the render)" if kept else
+                 "held in memory, not written (a rerun renders them again; `--keep-frames` keeps them)")
     md = f"""# render2spike run: {sc.name}
 
 | quantity | value |
@@ -231,7 +254,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
 | light level (reference) | {sc.illuminance_lux:g} lux |
 | clip | {sc.duration_s:g} s = {T} intervals of {prof.interval_s * 1e6:g} us |
 | sensor | {prof.name}, {H} x {W} px, threshold {prof.threshold_e:g} e- |
-| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {spp_text(m, res.spp)}, Mitsuba `{m.get("variant")}`, {m.get("launch", "film")} launch |
+| frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {spp_text(m, res.spp)}, Mitsuba `{m.get("variant")}`, {m.get("launch", "film")} launch; {kept_text} |
 | render noise / shot noise | {summary['render_noise_ratio_mean'] if summary['render_noise_ratio_mean'] is None else f"{summary['render_noise_ratio_mean']:.3f}"} (RMS over {(m.get('render_noise_ratio') or {}).get('window_intervals')} intervals) |
 | mean photoelectrons | {exp_e:.3g} e- per pixel per interval |
 | spikes | {n_spk} ({rate_per_interval:.4f} per pixel per interval = {summary['spike_rate_hz']:.1f} Hz) |

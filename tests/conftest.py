@@ -87,8 +87,8 @@ class RenderedRun(NamedTuple):
     argv: tuple
 
 
-#: the session's run: the bundled Lambertian plane, 10 ms (200 intervals, 3 frames) at 8 spp, spike seed 3
-RENDERED_RUN_OPTIONS = ("--duration", "0.01", "--spp", "8", "--quiet", "--seed", "3")
+#: the session's run: the bundled Lambertian plane, 10 ms (200 intervals, 3 frames) at 8 spp, frames kept, spike seed 3
+RENDERED_RUN_OPTIONS = ("--duration", "0.01", "--spp", "8", "--quiet", "--keep-frames", "--seed", "3")
 
 
 @pytest.fixture(scope="session")

@@ -8,8 +8,10 @@ HELP = "render a scene, simulate the spike camera, write a preview and a summary
 DESCRIPTION = """\
 The whole pipeline in one command:
 
-  1. render SCENE to OUT/frames (irradiance keyframes: Phi [e-/(s m^2)], E [lux];
-     resumable, see `render2spike render --help`);
+  1. render SCENE (irradiance keyframes: Phi [e-/(s m^2)]), held in memory
+     (4 bytes per pixel per keyframe, the whole clip); with --keep-frames
+     written to OUT/frames instead (Phi and E [lux], resumable, see
+     `render2spike render --help`);
   2. simulate the spike camera over the frames (Phi -> photoelectrons per
      interval via pixel area x fill factor x T_r, interpolated linearly in time;
      T_r = 50 us) -> OUT/spikes.npz;
@@ -23,8 +25,11 @@ The sensor profile comes from the scene (camera.profile) unless --profile is giv
 scene, options and seeds give the same frames (bit for bit with the default frozen
 launch; with --launch film to float round-off: at high spp a pixel may differ in its
 last bits run to run, rarely on the CPU, often on a GPU) and, from the
-same frames, bitwise-identical spikes, also after a resumed render. Rerunning into OUT resumes the render and rewrites the rest;
-an OUT made with another scene, model, seed or profile is refused unless --overwrite.
+same frames, bitwise-identical spikes, in memory or through OUT/frames, also after a
+resumed render. Only with --keep-frames (or when OUT/frames exists already, which is
+then rendered into) does a rerun into OUT resume the render; without it a rerun renders
+again. The rest is rewritten; an OUT made with another scene, model, seed or profile is
+refused unless --overwrite.
 SCENE is a YAML file or a bundled scene name (rotating_disk, translating_object,
 room_pan, lambertian_plane).
 """
@@ -47,6 +52,9 @@ def register(sub) -> None:
                    help="spike seed: seeds the spike simulation (default: 0); --render-seed seeds the render")
     p.add_argument("--model", default="elssim", choices=MODELS, help="spike noise model (default: elssim)")
     p.add_argument("--dat", action="store_true", help="also write OUT/spikes.dat (SpikeCV .dat layout)")
+    p.add_argument("--keep-frames", action="store_true",
+                   help="write the rendered frames to OUT/frames (OpenEXR, as `render2spike render` does): a rerun "
+                        "then resumes the render; without it they are held in memory and not written")
     p.add_argument("--preview-window", type=int, default=200, metavar="INTERVALS",
                    help="TFP window of the previews in intervals (default 200 = 10 ms)")
     p.set_defaults(func=run)
@@ -62,7 +70,7 @@ def run(args) -> int:
     s = run_pipeline(args.scene, args.out, sets=scene_sets(args), lux=args.lux, duration_s=args.duration,
                      profile=args.profile, model=args.model, seed=args.seed, overwrite=args.overwrite,
                      progress=not args.quiet, preview_window=args.preview_window, dat=args.dat,
-                     variant=variant_of(args), launch=args.launch)
+                     variant=variant_of(args), launch=args.launch, keep_frames=args.keep_frames)
     print(f"run: {s['scene']} at {s['illuminance_lux']:g} lux: {s['frames']} frames, {s['intervals']} intervals, "
           f"{s['spikes']} spikes ({s['spike_rate_hz']:.1f} Hz per pixel); {s['seconds']['total']:.1f} s -> {args.out}")
     print(f"run: preview {s['files']['png']}, {s['files']['gif']}; summary {args.out}/summary.md")

@@ -10,6 +10,7 @@
 
 Output (the frame contract of :mod:`sensor.io.frames`)
 ---------------------------------------------------
+(Or, into a :class:`.memory.MemorySink`, the same keyframes held in memory, nothing written.)
 ``OUT/frame_TTTTTTTT.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
 ``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``, ``launch``,
 ``scene_hash``, ``target_lux``, ``made_by``) and ``OUT/frames.json``, written
@@ -55,9 +56,10 @@ from .source import FrameSource
 
 @dataclass
 class RenderResult:
-    """What :func:`render_scene` did: the folder, frame count, spp, timings and whether it was already done."""
+    """What :func:`render_scene` did: the folder (None for a :class:`.memory.MemorySink`), frame count, spp,
+    timings and whether it was already done."""
 
-    out: Path
+    out: Path | None
     n_frames: int
     n_rendered: int
     spp: int
@@ -76,9 +78,16 @@ def render_scene(scene: Scene, out, *, overwrite: bool = False, progress: bool =
     hash, so a folder is resumed only by the launch it was rendered with (``auto`` takes that one).
     The launch taken is in the manifest, the render state and every frame's header.
 
+    ``out`` may also be a :class:`.memory.MemorySink`: the keyframes are then held in memory (float32, as a
+    frame file holds them; nothing is written, nothing resumed) and, once the render is done, read like a
+    folder from the sink's ``frames``.
+
     Raises :class:`sensor.errors.InputError` (before anything is written) for a folder of another scene
     (without ``overwrite``), a folder another render is writing into, or a scene with no usable light.
     """
+    from .memory import MemorySink
+    if isinstance(out, MemorySink):
+        return _render_locked(scene, out, overwrite, progress, variant, log, launch)
     with FramesFolder.locked(out, log) as folder:
         return _render_locked(scene, folder, overwrite, progress, variant, log, launch)
 

@@ -26,6 +26,9 @@ A *frames folder* holds the time-varying irradiance of a scene:
 Between timestamps the sensor interprets ``Phi`` piecewise-linearly in time
 (see :mod:`sensor.rates`). Rows are stored top-down (row 0 is the top of the
 image, as seen by the camera).
+
+:class:`MemoryFrameSequence` holds the same frames in memory (float32 Phi, a manifest, no file) and is read
+like a folder, to the same values.
 """
 
 from __future__ import annotations
@@ -278,6 +281,96 @@ class FrameSequence:
         if not _time_agrees(time_s, t):
             raise FrameFileError(f"header time_s = {time_s!r} but {MANIFEST_NAME} frames[{i}] says time_s = "
                                  f"{t!r}", path=self.path(i), field="time_s")
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self.read(i)
+
+    def phi_stack(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Phi of frames ``start:stop`` as float32 (K, H, W) [e-/(s m^2)]."""
+        stop = len(self) if stop is None else stop
+        return np.stack([self.read_phi(i) for i in range(start, stop)]) if stop > start else \
+            np.zeros((0,) + self.shape, np.float32)
+
+
+class MemoryFrameSequence:
+    """Frames held in memory, read like a frames folder (:class:`FrameSequence`'s reading interface).
+
+    ``phi``: one float32 (H, W) Phi array [e-/(s m^2)] per frame (a list, or a (K, H, W) stack), in the
+    order of ``manifest["frames"]`` (sorted by ``time_s`` [s], as :func:`manifest_record` makes it); the
+    arrays are held as given, not copied (the caller must not change them). ``lux``: the ``E`` channel
+    [lux], the same way, or None (frames read back then have ``illuminance_lux`` None). ``where`` names the
+    frames in error messages (there is no file).
+
+    The values handed out are those a frames folder written from the same float32 arrays gives back (EXR
+    stores float32): :meth:`read_scaled_many` scales and checks each frame exactly as
+    :meth:`FrameSequence.read_scaled_many` does (:func:`sensor.io.fastio.scale_checked`), so the same
+    frames and seed give the same spikes bit for bit, in memory or through a folder. Memory: 4 H W bytes
+    per frame for Phi (400 kB at 400 x 250), as much again for ``lux`` when held.
+    """
+
+    def __init__(self, phi, manifest: dict, lux=None, where: str = "frames in memory"):
+        self.manifest = manifest
+        self.folder = None
+        self.where = str(where)
+        self._phi = list(phi)
+        self._lux = None if lux is None else list(lux)
+        if len(self._phi) != len(manifest["frames"]) or (self._lux is not None and len(self._lux) != len(self._phi)):
+            raise ValueError(f"{len(self._phi)} Phi arrays for {len(manifest['frames'])} manifest frames")
+        for i, a in enumerate(self._phi):
+            if a.dtype != np.float32 or a.shape != self.shape:
+                raise ValueError(f"frame {i} is {a.dtype} {a.shape}; expected float32 {self.shape}")
+
+    @property
+    def times_s(self) -> np.ndarray:
+        """Timestamps [s], float64, strictly increasing."""
+        return np.array([f["time_s"] for f in self.manifest["frames"]], dtype=np.float64)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.manifest["height"]), int(self.manifest["width"])
+
+    def __len__(self) -> int:
+        return len(self._phi)
+
+    def path(self, i: int) -> Path:
+        """A name for frame ``i`` in messages: ``where`` and the frame's manifest name (no such file exists)."""
+        return Path(self.where) / str(self.manifest["frames"][i].get("file", f"frame {i}"))
+
+    def read(self, i: int) -> Frame:
+        """Frame ``i`` (float32 Phi, and E or None), checked for finite, non-negative values."""
+        phi = self._phi[i]
+        check_light(phi, self.path(i), "Phi")
+        lux = None if self._lux is None else self._lux[i]
+        if lux is not None:
+            check_light(lux, self.path(i), "E")
+        return Frame(float(self.manifest["frames"][i]["time_s"]), phi, lux, {})
+
+    def read_phi(self, i: int, out=None) -> np.ndarray:
+        """Phi of frame ``i``, float32 (H, W), checked (into ``out`` when given)."""
+        check_light(self._phi[i], self.path(i), "Phi")
+        if out is None:
+            return self._phi[i].copy()
+        out[...] = self._phi[i]
+        return out
+
+    def read_scaled(self, i: int, scale: float, out) -> np.ndarray:
+        """``out[...] = float32(float64(Phi_i) * scale)`` (:func:`sensor.io.fastio.scale_checked`), Phi checked."""
+        from sensor.io.fastio import scale_checked
+        phi = self._phi[i]
+        if out.shape != phi.shape:
+            raise ValueError(f"out is {out.shape}; frame {i} is {phi.shape}")
+        if scale_checked(phi, scale, out):
+            check_light(phi, self.path(i), "Phi")  # names the first bad pixel
+        return out
+
+    def read_scaled_many(self, i: int, j: int, scale: float, out) -> np.ndarray:
+        """:meth:`read_scaled` of frames ``i .. j-1`` into ``out`` (float32 (j - i, H, W)), returned."""
+        if out.shape != (j - i,) + self.shape or out.dtype != np.float32:
+            raise ValueError(f"out must be float32 {(j - i,) + self.shape}; got {out.dtype} {out.shape}")
+        for q in range(i, j):
+            self.read_scaled(q, scale, out[q - i])
+        return out
 
     def __iter__(self):
         for i in range(len(self)):

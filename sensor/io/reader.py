@@ -49,7 +49,8 @@ class ChunkPool(RecyclingPool):
 
 
 class RateSource:
-    """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from a frames folder, .npz or .npy file.
+    """Chunks of (rate_e (k, H, W) [e-/interval], t_s (k,) or None) from a frames folder, .npz or .npy file,
+    or frames held in memory (:class:`sensor.io.frames.MemoryFrameSequence`, read like a folder, no file).
 
     Nothing is read whole: an ``.npy`` (and an ``.npz`` whose ``rate_e`` is stored, as ``np.savez`` writes
     it) is memory-mapped and handed out in row chunks whose pages are dropped again once used, a deflated
@@ -60,7 +61,9 @@ class RateSource:
     """
 
     def __init__(self, path):
-        self.path = Path(path)
+        from sensor.io.frames import MemoryFrameSequence
+        held = path if isinstance(path, MemoryFrameSequence) else None  # frames in memory, read like a folder
+        self.path = Path(path) if held is None else Path(held.where)
         self.kind = None
         self._reader = None  # the read-ahead thread's executor while chunks are read ahead
         self._member = None
@@ -68,9 +71,9 @@ class RateSource:
         self._crc = None  # a memory-mapped stored .npz member: its CRC-32, folded in as rows are handed out
         self._pool = ChunkPool()
         self.rate = None
-        if self.path.is_dir():
+        if held is not None or self.path.is_dir():
             from sensor.io.frames import read_frames
-            self.frames = read_frames(self.path)
+            self.frames = held if held is not None else read_frames(self.path)
             self.kind = "frames"
             self.shape = self.frames.shape
             self.n = len(self.frames)
@@ -361,8 +364,8 @@ class ArraySource:
 
 
 def open_rate_input(source, t_s=None):
-    """A chunk source for ``source``: a frames folder or an ``.npz`` / ``.npy`` file (:class:`RateSource`), an
-    in-memory rate array with optional keyframe times ``t_s`` (:class:`ArraySource`), or a source already.
+    """A chunk source for ``source``: a frames folder or an ``.npz`` / ``.npy`` file or frames in memory
+    (:class:`sensor.io.frames.MemoryFrameSequence`) (:class:`RateSource`), an in-memory rate array with optional keyframe times ``t_s`` (:class:`ArraySource`), or a source already.
 
     ``t_s`` [s] (K,): the keyframe times of an in-memory array, an ``.npy`` file or an ``.npz`` without its
     own ``t_s``; refused (InputError) for a frames folder or an ``.npz`` that has its own times, and for a
@@ -372,6 +375,12 @@ def open_rate_input(source, t_s=None):
             raise InputError("t_s is given with a rate source already opened; open the source with its times",
                              path=getattr(source, "path", None), field="t_s")
         return source
+    from sensor.io.frames import MemoryFrameSequence
+    if isinstance(source, MemoryFrameSequence):
+        if t_s is not None:
+            raise InputError("t_s is given with frames in memory: their keyframe times are in their manifest",
+                             path=source.where, field="t_s")
+        return RateSource(source)
     if isinstance(source, (str, os.PathLike)):
         src = RateSource(source)
         if t_s is not None:

@@ -1,6 +1,6 @@
-"""The one path from a rate input to spikes: a frames folder, an ``.npz`` / ``.npy`` rate array or an in-memory
-array, read in planned chunks (:mod:`sensor.io.reader`), through a :class:`sensor.SpikeSimulator` that looks
-ahead, into a spike writer or into memory.
+"""The one path from a rate input to spikes: a frames folder (or frames held in memory), an ``.npz`` / ``.npy``
+rate array or an in-memory array, read in planned chunks (:mod:`sensor.io.reader`), through a
+:class:`sensor.SpikeSimulator` that looks ahead, into a spike writer or into memory.
 
 ``render2spike simulate``, ``render2spike run``, the datasets and the studies all stream through
 :func:`open_stream`. The spikes do not depend on how the input is read (chunk sizes, read-ahead): the same
@@ -155,16 +155,17 @@ def open_stream(source, profile, model: str = "elssim", seed: int = 0, *, t_s=No
     """Open a rate input and make the simulator that streams it (nothing is read yet; see
     :meth:`SpikeStream.start`).
 
-    ``source``: a frames folder, an ``.npz`` (``rate_e`` [, ``t_s``]) or ``.npy`` file, an in-memory rate array
+    ``source``: a frames folder, frames in memory (:class:`sensor.io.frames.MemoryFrameSequence`), an
+    ``.npz`` (``rate_e`` [, ``t_s``]) or ``.npy`` file, an in-memory rate array
     (with keyframe times ``t_s``, or one row per interval), or a source of :mod:`sensor.io.reader`.
     ``profile``: a :class:`SensorProfile` or its name / path; its centred window is used when the input is
     smaller (:func:`profile_for_input`), with ``reset`` replacing its pixel reset when given. ``say`` gets the
     notes and warnings (None: silent). ``implementation`` and ``device``: see :class:`SpikeSimulator`. Raises InputError when the input spans less than one interval.
     """
     say = say or _quiet
-    where = source if isinstance(source, (str, os.PathLike)) else getattr(source, "path", None)  # as given
     opened = not isinstance(source, (RateSource, ArraySource))
     src = open_rate_input(source, t_s)
+    where = source if isinstance(source, (str, os.PathLike)) else getattr(src, "path", None)  # as given
     try:
         profile = profile if isinstance(profile, SensorProfile) else SensorProfile.load(profile)
         profile = profile_for_input(profile, src.shape, say)

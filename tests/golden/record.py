@@ -19,7 +19,7 @@ from tests.golden.hashes import _sha, run_hashes, spike_hash
 #: the CPU's LLVM variant and the frozen launch, named (not ``auto``): the hashes are of that back end's frames
 VARIANT = "llvm_ad_spectral"
 RUN_ARGS = ["run", "rotating_disk", "--set", "camera.profile.window=[120,180,16,24]",
-            "--duration", "0.01", "--dat", "--quiet", "--variant", VARIANT, "--launch", "frozen"]
+            "--duration", "0.01", "--dat", "--quiet", "--variant", VARIANT, "--launch", "frozen", "--keep-frames"]
 
 SIMULATE_CASES = {
     "isi": ["--model", "isi", "--seed", "3"],

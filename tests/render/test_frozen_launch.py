@@ -390,7 +390,7 @@ def test_cli_launch_option_reaches_the_frames_and_the_run_summary(tmp_path, writ
     assert main(["render", str(path), "--out", str(tmp_path / "f"), "--spp", "4", "--quiet"]) == 0
     assert json.loads((tmp_path / "f" / "frames.json").read_text())["launch"] == auto
     assert main(["run", str(path), "--out", str(tmp_path / "r"), "--spp", "4", "--launch", "film",
-                 "--quiet"]) == 0
+                 "--quiet", "--keep-frames"]) == 0
     assert json.loads((tmp_path / "r" / "summary.json").read_text())["launch"] == "film"
     # the default (auto) resumes the film run: nothing rendered again, the summary keeps its launch
     s = run_pipeline(path, tmp_path / "r", sets=["render.spp=4"], progress=False, log=lambda *a: None)

@@ -151,7 +151,7 @@ def two_runs(tmp_path_factory):
     scene = _scene(tmp)
     outs = []
     for name in ("a", "b"):
-        r = _cli("run", str(scene), "--out", str(tmp / name), "--quiet", "--seed", "5")
+        r = _cli("run", str(scene), "--out", str(tmp / name), "--quiet", "--seed", "5", "--keep-frames")
         assert r.returncode == 0, r.stderr
         outs.append(tmp / name)
     return scene, outs

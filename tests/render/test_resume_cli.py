@@ -72,7 +72,7 @@ def test_cli_bad_scene_is_one_line(tmp_path, cli):
 def test_cli_run_end_to_end(rendered_run):
     out = rendered_run.out  # the session's run, made in-process by the CLI (exit code 0):
     assert rendered_run.argv == ("run", "lambertian_plane", "--out", str(out), "--duration", "0.01", "--spp", "8",
-                                 "--quiet", "--seed", "3")
+                                 "--quiet", "--keep-frames", "--seed", "3")
     s = json.loads((out / "summary.json").read_text())
     assert s["intervals"] == 200 and s["frames"] == 3 and s["illuminance_lux"] == 100
     for f in ("spikes.npz", "preview.png", "preview.gif", "summary.md", "frames/frames.json"):

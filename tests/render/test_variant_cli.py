@@ -31,7 +31,7 @@ def test_run_with_variant_wins_over_the_environment_and_is_recorded(tmp_path, wr
     scene = write_scene()
     out = tmp_path / "run"
     r = _cli("run", str(scene), "--out", str(out), "--quiet", "--spp", "4", "--variant", "scalar_spectral",
-             env_variant="llvm_ad_spectral")
+             "--keep-frames", env_variant="llvm_ad_spectral")
     assert r.returncode == 0, r.stderr
     manifest = json.loads((out / "frames" / "frames.json").read_text())
     summary = json.loads((out / "summary.json").read_text())
