@@ -4,8 +4,8 @@
 (:mod:`sensor.models.step`) define the models; the fast ones (:mod:`sensor.models.fast`, numba on the
 CPU) and the torch ones (:mod:`sensor.models.torch_models`, PyTorch on a GPU or the CPU) are listed here
 and imported on first use, so that ``import sensor`` loads neither numba nor torch. ``auto`` (the
-default) is ``torch`` on a CUDA device when one works, else ``fast``. Only the torch module imports
-this one (for its hot pixels, when a model is made).
+default) is ``torch`` on a CUDA device when one works, else ``fast``. No implementation module imports
+this one.
 """
 
 from __future__ import annotations

@@ -153,6 +153,18 @@ def spike_device(device: str | None = None) -> str:
     return name
 
 
+def _host_elssim(profile: SensorProfile) -> SpikeModel:
+    """The CPU ``elssim`` model of ``profile``'s reset: the numba kernel, else the reference (what the registry's
+    ``fast`` gives; chosen here so that this module does not import the registry, which imports it)."""
+    crossing = profile.reset == "crossing"
+    from sensor.models.kernels import HAVE_NUMBA
+    if HAVE_NUMBA:
+        from sensor.models import fast
+        return (fast.ELSSimCrossingFast if crossing else fast.ELSSimFast)(profile)
+    from sensor.models.step import ELSSimCrossingStep, ELSSimStep
+    return (ELSSimCrossingStep if crossing else ELSSimStep)(profile)
+
+
 # ------------------------------------------------------------------------------------------ model classes
 class _TorchModel(SpikeModel):
     """Common machinery: device, maps, lambda from segments on the device, packed output."""
@@ -228,8 +240,7 @@ class _TorchModel(SpikeModel):
         self.hot_groups = [hot[i:i + HOT_GROUP_PIXELS] for i in range(0, hot.size, HOT_GROUP_PIXELS)]
         self.hot_models = []
         if hot.size:
-            from sensor.models.registry import get_model
-            self.hot_models = [get_model("elssim", _pixel_subprofile(profile, grp), "fast") for grp in self.hot_groups]
+            self.hot_models = [_host_elssim(_pixel_subprofile(profile, grp)) for grp in self.hot_groups]
 
     def _hot_group(self, j, seg, state, rng):
         """The spikes of hot-pixel group ``j``, bool (B, its pixels) on the host."""
