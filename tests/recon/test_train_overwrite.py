@@ -134,7 +134,7 @@ def test_train_temporal_head_on_the_cli(tmp_path, capsys):
                 "--init", tmp_path / "a" / "model.pt", "--head", "--head-windows", "1,4,0", "--head-motion",
                 "--train-only", "head") == 0
     model, ckpt = load_checkpoint(tmp_path / "b" / "model.pt")
-    assert model.config.head_windows == (1, 4, 0) and model.config.head_motion and model.n_cues == 2
+    assert model.config.head_windows == (1, 4, 0) and model.config.head_motion and model.n_cues == 2 + 1  # light level
     assert json.loads((tmp_path / "b" / "config.json").read_text())["network"]["head_windows"] == [1, 4, 0]
     assert _cli("train", "--data", data, "--out", tmp_path / "c", "--steps", 1, "--quiet",
                 "--init", tmp_path / "a" / "model.pt", "--head-windows", "1,0") == 2
