@@ -136,6 +136,14 @@ class _Base:
         self.implementation = implementation
         self.epoch = 0
 
+    def use_layout(self, n_windows: int, window: int) -> None:
+        """Cut each item's M-interval block into ``n_windows`` windows of ``window`` intervals instead (the
+        layout a network takes, :attr:`recon.nets.RSIRConfig.input_layout`); the block (M) stays the same."""
+        if int(n_windows) * int(window) != self.M or n_windows < 1 or window < 1:
+            raise InputError(f"{n_windows} windows of {window} intervals do not cut the items' {self.M}-interval "
+                             f"block", field="windows")
+        self.n_windows, self.window = int(n_windows), int(window)
+
     def set_epoch(self, epoch: int) -> None:
         """Draw new crops / light levels / noise for every item (training); call once per epoch."""
         self.epoch = int(epoch)

@@ -43,7 +43,7 @@ import numpy as np
 from sensor.errors import InputError, UnknownMethodError
 from sensor.io.fileio import atomic_path, write_json_atomic, write_text_atomic
 
-from .classic import tfi, tfp, tfp_deadtime
+from .classic import tfi, tfp, tfp_deadtime, tfp_windows
 from .imageio import show_image_row, white_level
 from .metrics import PSNR_CAP_DB, WHITE_PERCENTILE, normalise, psnr_ssim  # noqa: F401  (re-exported)
 
@@ -144,7 +144,13 @@ def apply_method(m: Method, sample) -> np.ndarray:
         import torch
         model = m.model
         dev = next(model.parameters()).device
-        w = torch.from_numpy(sample.windows[None]).to(dev)
+        wins = sample.windows
+        N, Lw = model.config.input_layout
+        if (wins.shape[0], _window_of(sample)) != (N, Lw) and N * Lw == wins.shape[0] * _window_of(sample) \
+                and getattr(sample, "spikes", None) is not None and np.ndim(sample.spikes) == 3:
+            # the same span cut as this network takes it (e.g. split windows)
+            wins = tfp_windows(sample.spikes, N, Lw, center=sample.center)
+        w = torch.from_numpy(wins[None]).to(dev)
         maps = torch.from_numpy(sample.maps[None]).to(dev)
         return model.reconstruct(w, maps)[0, 0].cpu().numpy().astype(np.float32)
     raise UnknownMethodError("reconstruction method", m.kind, METHOD_NAMES)

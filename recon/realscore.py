@@ -201,7 +201,7 @@ def _clip_samples(clip_spikes, profile):
 
     def network(model) -> Sample:
         from .reconstruct import fit_windows
-        N, Lw = fit_windows(L, None, None, (model.config.n_windows, model.config.window))
+        N, Lw = fit_windows(L, None, None, model.config.input_layout)
         return Sample(windows=tfp_windows(clip_spikes, N, Lw), target=classic.target, maps=maps,
                       spikes=clip_spikes, center=L // 2, profile=profile, name="clip",
                       meta={"window": Lw, "windows": f"{N}x{Lw}"})

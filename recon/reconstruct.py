@@ -90,7 +90,7 @@ def reconstruct_file(spikes_path, *, method: str = "tfp", checkpoint=None, out_d
         from .nets import load_checkpoint
         checkpoint = checkpoint or default_checkpoint()
         model, _ = load_checkpoint(checkpoint, device)
-        N, Lw = fit_windows(T, n_windows, window_length, (model.config.n_windows, model.config.window))
+        N, Lw = fit_windows(T, n_windows, window_length, model.config.input_layout)
         need = N * Lw
     elif method in ("tfp", "tfp-dt", "tfp-dt-denoised"):
         window = int(window) if window else min(RSIR_N_WINDOWS * RSIR_WINDOW, T)

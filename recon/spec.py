@@ -208,6 +208,12 @@ class ConcatData:
         self.kind = "+".join(p.kind for p in self.parts)
         self.epoch = 0
 
+    def use_layout(self, n_windows: int, window: int) -> None:
+        """Every part's items cut into ``n_windows`` windows of ``window`` intervals (``_Base.use_layout``)."""
+        for p in self.parts:
+            p.use_layout(n_windows, window)
+        self.n_windows, self.window = int(n_windows), int(window)
+
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
         for p in self.parts:

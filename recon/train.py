@@ -238,9 +238,14 @@ def train(dataset, out_dir, *, net_config=None, train_config: TrainConfig | None
                 model = RSIRNet(nc).to(device)
         ckpt = None
     model.train()
-    if dataset.n_windows != model.config.n_windows:
-        raise InputError(f"the data give {dataset.n_windows} windows but the network takes "
-                         f"{model.config.n_windows}", field="--data")
+    N, w = model.config.input_layout
+    if (dataset.n_windows, getattr(dataset, "window", w)) != (N, w) and hasattr(dataset, "use_layout") \
+            and dataset.n_windows * dataset.window == N * w:
+        dataset.use_layout(N, w)  # the same blocks, cut as the network takes them (e.g. split windows)
+    if dataset.n_windows != N or getattr(dataset, "window", w) != w:
+        raise InputError(f"the data give {dataset.n_windows} windows of {getattr(dataset, 'window', '?')} intervals "
+                         f"but the network takes {N} of {w} (add windows={N}:window={w} to each --data spec)",
+                         field="--data")
     head_only = cfg.train_only == "head"
     if head_only and not (init_checkpoint or resume):
         raise InputError("train_only='head' keeps the rest of the network as it is: start from a trained one "
@@ -364,6 +369,7 @@ def _with_head(model, seed: int, device, head_sigmas=None, head_windows=None, he
     extra["head_edges"] = str(head_edges or "symmetric")
     extra["head_loss"] = RSIRConfig.head_loss  # a new head: the current default loss and inputs
     extra["head_light_level"] = RSIRConfig.head_light_level
+    extra["head_split"] = RSIRConfig.head_split
     cfg = RSIRConfig.from_dict({**model.config.to_dict(), "head": True, **extra})
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))

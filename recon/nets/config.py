@@ -96,6 +96,14 @@ class RSIRConfig:
     of its mean count of light (the excess over the dark floor; see
     :meth:`recon.nets.RSIRNet.light_level`), besides the mean count of all its
     spikes; a checkpoint whose config does not name it has no such input.
+
+    ``head_split``: the network takes each window split in this many
+    (``n_windows * head_split`` windows of ``window / head_split`` intervals,
+    :attr:`input_layout`); the recurrent network sees them merged back into
+    ``n_windows`` windows, the head's bank uses them as given. With 2, every
+    support of ``head_windows`` is centred on the target (the 1-window support
+    straddles the centre; with whole windows it starts there, half a window
+    late). 1 (whole windows) for a checkpoint whose config does not name it.
     """
 
     n_windows: int = 10
@@ -129,6 +137,7 @@ class RSIRConfig:
     head_edges: str = "symmetric"
     head_loss: str = "psnr"
     head_light_level: bool = True
+    head_split: int = 2
 
     def __post_init__(self):
         if self.normalise not in ("fixed", "mean"):
@@ -143,6 +152,10 @@ class RSIRConfig:
             raise InputError(f"head_windows must list distinct window counts >= 0 (0 = all windows), got "
                              f"{self.head_windows}", field="head_windows")
         self.head_windows = tuple(int(v) for v in hw)
+        if (isinstance(self.head_split, bool) or not isinstance(self.head_split, int) or self.head_split < 1
+                or self.window % self.head_split):
+            raise InputError(f"head_split must be a whole number >= 1 that divides the window ({self.window} "
+                             f"intervals), got {self.head_split}", field="head_split")
         if self.head_loss not in HEAD_LOSSES:
             raise InputError(f"head_loss must be one of {list(HEAD_LOSSES)}, got '{self.head_loss}'",
                              field="head_loss")
@@ -188,6 +201,13 @@ class RSIRConfig:
             return cls.rsir(**kw)
         raise UnknownMethodError("network size preset", name, PRESETS)
 
+    @property
+    def input_layout(self) -> tuple[int, int]:
+        """(windows, intervals per window) the network takes: ``n_windows`` x ``window``, each window split in
+        ``head_split`` when the network has a head."""
+        k = int(self.head_split) if self.head else 1
+        return self.n_windows * k, self.window // k
+
     def to_dict(self) -> dict:
         """Plain JSON-ready values (``head_sigmas`` and ``head_windows`` as lists)."""
         d = asdict(self)
@@ -197,9 +217,9 @@ class RSIRConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RSIRConfig":
-        """The config of a stored dict; one without ``head_edges`` / ``head_loss`` / ``head_light_level``
-        predates the setting: ``"replicate"`` / ``"l1"`` / False."""
-        d = {"head_edges": "replicate", "head_loss": "l1", "head_light_level": False, **d}
+        """The config of a stored dict; one without ``head_edges`` / ``head_loss`` / ``head_light_level`` /
+        ``head_split`` predates the setting: ``"replicate"`` / ``"l1"`` / False / 1."""
+        d = {"head_edges": "replicate", "head_loss": "l1", "head_light_level": False, "head_split": 1, **d}
         names = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - names)
         if unknown:

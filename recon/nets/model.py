@@ -109,6 +109,16 @@ class RSIRNet(nn.Module):
         return torch.log10((windows.detach().mean(dim=(1, 2, 3), keepdim=True)
                             * (self.config.n_windows * self.config.window)).clamp_min(1e-3))
 
+    def trunk_windows(self, windows) -> "torch.Tensor":
+        """The recurrent network's input: ``windows`` (B, N, H, W) merged in consecutive groups of
+        ``config.head_split`` when they come split (N = ``n_windows * head_split``, :attr:`RSIRConfig.input_layout`),
+        else as given."""
+        k = int(self.config.head_split) if self.head is not None else 1
+        B, N, H, W = windows.shape
+        if k > 1 and N == self.config.n_windows * k:
+            return windows.view(B, N // k, k, H, W).mean(dim=2)
+        return windows
+
     def light_level(self, windows, maps=None) -> "torch.Tensor":
         """(B, 1, 1, 1): ``log10`` of the mean *light* count per pixel over the trained input length.
 
@@ -132,11 +142,12 @@ class RSIRNet(nn.Module):
 
         ``trunk_grad=False`` runs the recurrent network without gradients (training the output head alone).
         """
+        trunk_in = self.trunk_windows(windows)
         if self.head is None or trunk_grad:
-            out = self._trunk(windows, maps)
+            out = self._trunk(trunk_in, maps)
         else:
             with torch.no_grad():
-                out = self._trunk(windows, maps)
+                out = self._trunk(trunk_in, maps)
         if self.head is not None:
             s = out["scale"]
             cfg = self.config

@@ -407,3 +407,54 @@ def test_light_level_is_the_mean_light_count_over_the_dark_floor_without_hot_pix
     d = net.config.to_dict()
     d.pop("head_light_level")  # a config stored before the input existed
     assert RSIRConfig.from_dict(d).head_light_level is False and RSIRNet(RSIRConfig.from_dict(d)).n_cues == 1
+
+
+def test_split_windows_feed_the_trunk_whole_and_centre_every_support():
+    """``head_split`` 2: the network takes 20 windows of 16 intervals; the recurrent network sees them merged
+    into the trained 10 of 32 (the same output as given those), and the 1-window (32-interval) support is the
+    two half windows around the centre, not the whole window that starts there."""
+    cfg = RSIRConfig.tiny(width=8, res_blocks=1, attn_depth=2, heads=2, attn_window=4, nim_width=8, mask_width=8,
+                          normalise="mean", cumulative=True, linearise=True, level_input=True, head=True,
+                          head_sigmas=(0.0,), head_windows=(1, 0))
+    assert cfg.head_split == 2 and cfg.input_layout == (20, 16)
+    assert RSIRConfig.tiny(head=False).input_layout == (10, 32)  # no head: whole windows
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        net = RSIRNet(cfg).eval()
+    rng = np.random.default_rng(4)
+    fine = torch.from_numpy(rng.integers(0, 17, (1, 20, 8, 8)).astype(np.float32) / 16)  # rates k / 16
+    whole = fine.view(1, 10, 2, 8, 8).mean(dim=2)
+    torch.testing.assert_close(net.trunk_windows(fine), whole)
+    torch.testing.assert_close(net.trunk_windows(whole), whole)  # whole windows pass as given
+    with torch.no_grad():
+        out = net(fine, None)
+        ref = net._trunk(whole, None)
+    torch.testing.assert_close(out["head_candidates"][:, 0], ref["output"][:, 0])
+    one = out["head_candidates"][0, 1]  # the 32-interval support, no smoothing, no maps: its mean rate
+    torch.testing.assert_close(one, fine[0, 9:11].mean(dim=0))
+    assert not torch.allclose(one, whole[0, 5])
+    d = cfg.to_dict()
+    d.pop("head_split")
+    assert RSIRConfig.from_dict(d).head_split == 1  # stored before the setting: whole windows
+    for bad in (0, 3, True):
+        with pytest.raises(InputError, match="head_split"):
+            RSIRConfig.tiny(head=True, head_split=bad)
+
+
+def test_evaluate_cuts_the_items_block_as_a_split_network_takes_it():
+    from recon.classic import tfp_windows
+    from recon.datasets import Sample
+    from recon.evaluate import Method, apply_method
+    net = _tiny(head=True, head_windows=(1, 0), head_motion=True).eval()
+    assert net.config.input_layout == (20, 16)
+    rng = np.random.default_rng(6)
+    spikes = rng.uniform(0, 1, (400, 16, 16)) < 0.1
+    prof = uniform_profile(16, 16)
+    maps = sensor_maps(prof).astype(np.float32)
+    smp = Sample(windows=tfp_windows(spikes, 10, 32, center=200), target=np.zeros((1, 16, 16), np.float32),
+                 maps=maps, spikes=spikes, center=200, profile=prof, name="x", meta={"window": 32})
+    got = apply_method(Method("rsir", None, "net", net), smp)
+    with torch.no_grad():
+        want = net.reconstruct(torch.from_numpy(tfp_windows(spikes, 20, 16, center=200)[None]),
+                               torch.from_numpy(maps[None]))[0, 0].numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
