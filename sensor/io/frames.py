@@ -94,17 +94,10 @@ def _groupable(hdr) -> bool:
     return hdr[6] == np.float32 and tattr is not None and tattr[0] == b"double" and tattr[2] == 8
 
 
-@dataclass
-class FrameSequence:
-    """A frames folder: its manifest and lazy access to the frames, in time order."""
+class _ManifestLayout:
+    """What a frame sequence reads off its manifest: the timestamps and the frame shape."""
 
-    folder: Path
     manifest: dict
-    _buf: bytearray = field(default_factory=bytearray, repr=False, compare=False)  # read_scaled's file buffer
-    _hdr: tuple | None = field(default=None, repr=False, compare=False)  # read_scaled's last header layout
-    _group: np.ndarray | None = field(default=None, repr=False, compare=False)  # read_scaled_many's files
-    _paths: list | None = field(default=None, repr=False, compare=False)  # the frames' paths as str
-    _times: np.ndarray | None = field(default=None, repr=False, compare=False)  # times_s, made once
 
     @property
     def times_s(self) -> np.ndarray:
@@ -114,6 +107,19 @@ class FrameSequence:
     @property
     def shape(self) -> tuple[int, int]:
         return int(self.manifest["height"]), int(self.manifest["width"])
+
+
+@dataclass
+class FrameSequence(_ManifestLayout):
+    """A frames folder: its manifest and lazy access to the frames, in time order."""
+
+    folder: Path
+    manifest: dict
+    _buf: bytearray = field(default_factory=bytearray, repr=False, compare=False)  # read_scaled's file buffer
+    _hdr: tuple | None = field(default=None, repr=False, compare=False)  # read_scaled's last header layout
+    _group: np.ndarray | None = field(default=None, repr=False, compare=False)  # read_scaled_many's files
+    _paths: list | None = field(default=None, repr=False, compare=False)  # the frames' paths as str
+    _times: np.ndarray | None = field(default=None, repr=False, compare=False)  # times_s, made once
 
     def __len__(self) -> int:
         return len(self.manifest["frames"])
@@ -293,7 +299,7 @@ class FrameSequence:
             np.zeros((0,) + self.shape, np.float32)
 
 
-class MemoryFrameSequence:
+class MemoryFrameSequence(_ManifestLayout):
     """Frames held in memory, read like a frames folder (:class:`FrameSequence`'s reading interface).
 
     ``phi``: one float32 (H, W) Phi array [e-/(s m^2)] per frame (a list, or a (K, H, W) stack), in the
@@ -320,15 +326,6 @@ class MemoryFrameSequence:
         for i, a in enumerate(self._phi):
             if a.dtype != np.float32 or a.shape != self.shape:
                 raise ValueError(f"frame {i} is {a.dtype} {a.shape}; expected float32 {self.shape}")
-
-    @property
-    def times_s(self) -> np.ndarray:
-        """Timestamps [s], float64, strictly increasing."""
-        return np.array([f["time_s"] for f in self.manifest["frames"]], dtype=np.float64)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return int(self.manifest["height"]), int(self.manifest["width"])
 
     def __len__(self) -> int:
         return len(self._phi)
