@@ -95,7 +95,8 @@ def _groupable(hdr) -> bool:
 
 
 class _ManifestLayout:
-    """What a frame sequence reads off its manifest: the timestamps and the frame shape."""
+    """What a frame sequence reads off its manifest (the timestamps and the frame shape), and what it builds
+    on its own ``read`` / ``read_phi``: iteration and a stack of Phi."""
 
     manifest: dict
 
@@ -107,6 +108,16 @@ class _ManifestLayout:
     @property
     def shape(self) -> tuple[int, int]:
         return int(self.manifest["height"]), int(self.manifest["width"])
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self.read(i)
+
+    def phi_stack(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Phi of frames ``start:stop`` as float32 (K, H, W) [e-/(s m^2)]."""
+        stop = len(self) if stop is None else stop
+        return np.stack([self.read_phi(i) for i in range(start, stop)]) if stop > start else \
+            np.zeros((0,) + self.shape, np.float32)
 
 
 @dataclass
@@ -288,16 +299,6 @@ class FrameSequence(_ManifestLayout):
             raise FrameFileError(f"header time_s = {time_s!r} but {MANIFEST_NAME} frames[{i}] says time_s = "
                                  f"{t!r}", path=self.path(i), field="time_s")
 
-    def __iter__(self):
-        for i in range(len(self)):
-            yield self.read(i)
-
-    def phi_stack(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Phi of frames ``start:stop`` as float32 (K, H, W) [e-/(s m^2)]."""
-        stop = len(self) if stop is None else stop
-        return np.stack([self.read_phi(i) for i in range(start, stop)]) if stop > start else \
-            np.zeros((0,) + self.shape, np.float32)
-
 
 class MemoryFrameSequence(_ManifestLayout):
     """Frames held in memory, read like a frames folder (:class:`FrameSequence`'s reading interface).
@@ -368,16 +369,6 @@ class MemoryFrameSequence(_ManifestLayout):
         for q in range(i, j):
             self.read_scaled(q, scale, out[q - i])
         return out
-
-    def __iter__(self):
-        for i in range(len(self)):
-            yield self.read(i)
-
-    def phi_stack(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Phi of frames ``start:stop`` as float32 (K, H, W) [e-/(s m^2)]."""
-        stop = len(self) if stop is None else stop
-        return np.stack([self.read_phi(i) for i in range(start, stop)]) if stop > start else \
-            np.zeros((0,) + self.shape, np.float32)
 
 
 def check_light(arr, path, name: str) -> None:
