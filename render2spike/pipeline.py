@@ -110,6 +110,15 @@ def _read_manifest(frames: Path) -> dict:
     return m if isinstance(m, dict) else {}
 
 
+def _tiles_text(manifest: dict) -> str:
+    """The spread of the render-noise ratio over the verified keyframes' 8 x 8 tiles, for the summary."""
+    t = (manifest.get("render_noise_ratio") or {}).get("tiles") or {}
+    if not t.get("n_tiles"):
+        return ""
+    return (f"; on {t['tile_px']} x {t['tile_px']} px tiles {t['p10']:.2f}-{t['p90']:.2f} (10th-90th percentile), "
+            f"{100 * t['fraction_above_band']:.0f} % above the band")
+
+
 def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=None, model: str = "elssim",
                  seed: int = 0, overwrite: bool = False, progress: bool = True, preview_window: int = 200,
                  dat: bool = False, variant: str | None = None, log=print, launch: str = "auto",
@@ -255,7 +264,7 @@ def run_pipeline(scene, out, *, sets=None, lux=None, duration_s=None, profile=No
 | clip | {sc.duration_s:g} s = {T} intervals of {prof.interval_s * 1e6:g} us |
 | sensor | {prof.name}, {H} x {W} px, threshold {prof.threshold_e:g} e- |
 | frames | {res.n_frames} keyframes ({res.n_rendered} rendered in this run), {spp_text(m, res.spp)}, Mitsuba `{m.get("variant")}`, {m.get("launch", "film")} launch; {kept_text} |
-| render noise / shot noise | {summary['render_noise_ratio_mean'] if summary['render_noise_ratio_mean'] is None else f"{summary['render_noise_ratio_mean']:.3f}"} (RMS over {(m.get('render_noise_ratio') or {}).get('window_intervals')} intervals) |
+| render noise / shot noise | {summary['render_noise_ratio_mean'] if summary['render_noise_ratio_mean'] is None else f"{summary['render_noise_ratio_mean']:.3f}"} (RMS over {(m.get('render_noise_ratio') or {}).get('window_intervals')} intervals){_tiles_text(m)} |
 | mean photoelectrons | {exp_e:.3g} e- per pixel per interval |
 | spikes | {n_spk} ({rate_per_interval:.4f} per pixel per interval = {summary['spike_rate_hz']:.1f} Hz) |
 | model, seed | {model}, {seed} |

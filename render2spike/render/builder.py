@@ -249,14 +249,26 @@ def bsdf_dict(mi, obj: dict, scene: Scene) -> dict:
     return b
 
 
-def emitter_sampling_weights(scene: Scene, motions: dict | None = None) -> dict:
-    """Next-event-estimation weights ~ each light's rough raw illuminance near the reference.
+def emitter_sampling_weights(scene: Scene, motions: dict | None = None, sky_by_nee: bool = False) -> dict:
+    """Next-event-estimation weights ~ each light's rough raw illuminance near the reference; the
+    environment's 0 when another light is on.
 
     Mitsuba picks one emitter per shadow ray, uniformly by default; a dim sky
     and a bright sun then get half the samples each and the sun's pixels get
     a ~100 % relative noise. Weighting by the expected contribution removes
-    that. Rough estimates suffice (they change the noise, never the mean):
+    most of that. Rough estimates suffice (they change the noise, never the mean):
     directional E_perp, point I/d^2, environment pi L, area emitter L A / d^2 (<= pi L).
+
+    The environment (a constant sky) is not sampled by next-event estimation at all when another light is
+    on: its light then comes from the BSDF-sampled rays alone (multiple importance sampling gives them full
+    weight when the emitter's selection probability is 0), which for a constant sky is cosine sampling on a
+    diffuse surface, no worse than the sky's own uniform-sphere sampling; and every shadow ray goes to the
+    other lights, so a sun no longer loses a few per cent of its samples to the sky. On the README's scene
+    (a sun and a sky of 7 % of its light) that cuts the render variance at 64 spp 3.9x, on translating_object
+    2.4x, on room_pan (a panel and a sky) 1.5x, with means equal within their errors
+    (``tests/render/test_sky_sampling.py``). A sky that is the only light keeps its weight (something must be
+    sampled). ``sky_by_nee``: keep the sky's weight ~ pi L as the other lights' (the two strategies mixed;
+    for comparison). -> ``{light or object name: weight}``.
     """
     from .photometry import v_integral
     ref = scene.data.get("reference", {})
@@ -287,8 +299,13 @@ def emitter_sampling_weights(scene: Scene, motions: dict | None = None) -> dict:
                     "cylinder": 2 * np.pi * sm[0, 0] * sm[2, 2]}.get(obj["shape"], 1.0)
             d2 = float(np.sum((np.asarray(obj.get("position", [0, 0, 0]), float) - p) ** 2))
             w[obj["name"]] = e * min(area / max(d2, 1e-6), np.pi)
+    skies = {key for j, lt in enumerate(scene.data["lights"]) if lt["type"] == "environment"
+             for key in [lt.get("name") or f"light{j}"]}
+    lit = {k for k, v in w.items() if v > 0}
+    if lit - skies and not sky_by_nee:  # another light is on: the sky is left to the BSDF-sampled rays
+        w = {k: (0.0 if k in skies else v) for k, v in w.items()}
     total = sum(w.values()) or 1.0
-    return {k: float(max(v / total, 1e-3)) for k, v in w.items()}
+    return {k: float(0.0 if w[k] == 0 and k in skies else max(v / total, 1e-3)) for k, v in w.items()}
 
 
 def add_xml(mi, scene: Scene, d: dict) -> None:

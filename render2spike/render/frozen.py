@@ -74,9 +74,20 @@ ESTIMATOR_VERSION = 3
 #: (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`). A constant, not the machine's memory:
 #: the split is part of the estimator, so frames do not depend on where they were rendered
 MAX_SAMPLES_PER_LAUNCH = 1 << 26
-#: a launch of a list of pixels (:meth:`FrozenLaunch.launch_pixels`) pads the list to a multiple of this many
-#: pixels: the padded length is part of what is recorded, so lists of nearly equal length share one recording
-PIXEL_BUCKET = 256
+#: a launch of a list of pixels (:meth:`FrozenLaunch.launch_pixels`) pads the list (:func:`padded_pixels`) to a
+#: multiple of this many pixels at least, and of 1/PIXEL_STEPS of the list's power of two: the padded length is part
+#: of what is recorded, so lists of nearly equal length share one recording, and the padding (whose samples are
+#: traced and dropped) costs at most 1/PIXEL_STEPS of the samples
+PIXEL_BUCKET = 32
+PIXEL_STEPS = 32
+
+
+def padded_pixels(n: int) -> int:
+    """The length a list of ``n`` pixels is padded to for :meth:`FrozenLaunch.launch_pixels`: a multiple of
+    ``max(PIXEL_BUCKET, 2^floor(log2 n) / PIXEL_STEPS)`` (e.g. 2310 -> 2368: 2.5 % padding; 100 -> 128)."""
+    n = max(1, int(n))
+    step = max(PIXEL_BUCKET, (1 << (n.bit_length() - 1)) // PIXEL_STEPS)
+    return -(-n // step) * step
 
 
 #: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
@@ -372,7 +383,7 @@ class FrozenLaunch:
 
         The same estimator as :meth:`launch` (rays, wavelengths, sums), on a list of pixels: the renderer's
         static-region reuse (:mod:`.reuse`) renders only the pixels something moving covers. The list is padded
-        (with its last pixel) to a multiple of :data:`PIXEL_BUCKET` pixels, whose values are dropped: the padded
+        (with its last pixel) to :func:`padded_pixels` pixels, whose values are dropped: the padded
         length is an input of the recording (one recording per length and spp), so a list that changes a little
         from frame to frame replays the same recording. ``spp`` must be a count the sampler takes exactly."""
         mi = self.mi
@@ -381,7 +392,7 @@ class FrozenLaunch:
         if n_pix == 0:
             return spp, n_pix, None
         spp = self.sample_count(spp)
-        padded = -(-n_pix // PIXEL_BUCKET) * PIXEL_BUCKET
+        padded = padded_pixels(n_pix)
         if padded * spp >= 1 << 32:
             from sensor.errors import InputError
             raise InputError(f"{n_pix} pixels at {spp} spp is 2^32 samples or more in one launch", field="spp")

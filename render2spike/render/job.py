@@ -48,7 +48,7 @@ from . import backend
 from .folder import FramesFolder
 from .launch import DEFAULT_LAUNCH, check_launch, launch_record, launch_taken, refusal_hint, resolve_launch
 from .noise import (VERIFY_EVERY, dark_current_mean_e, keyframes_per_window, level_k_factors, pilot_budget,
-                    render_noise_ratio, verify_ratios)
+                    render_noise_ratio, tile_ratios, tile_summary, verify_ratios)
 from .sampling import TimeGrid
 from .scene import Scene
 from .source import FrameSource
@@ -222,6 +222,7 @@ class _Keyframes:
         self.made_by = json.dumps({"stage": "render", "tool": "render2spike", "scene": scene.name,
                                    "variant": rnd.variant, "launch": launch})
         self.n_rendered = 0
+        self.tiles = []  # the verified keyframes' noise.tile_ratios (this run's)
 
     def at(self, tick: int):
         """Phi (float64) of the keyframe at ``tick``: the folder's, else :meth:`render`'s."""
@@ -249,6 +250,8 @@ class _Keyframes:
             k = np.where(f["dynamic"], self.K, 1.0) if self.reuse.on else self.K
             ratio = render_noise_ratio(f["phi"] * rs, f["phi_var"] * rs ** 2, self.W, k,
                                        dark_current_mean_e(scene.profile))
+            self.tiles.append(tile_ratios(f["phi"] * rs, f["phi_var"] * rs ** 2, self.W, k,
+                                          dark_current_mean_e(scene.profile)))
         if not (np.isfinite(f["phi"]).all() and np.isfinite(f["lux"]).all()):
             bad = ~np.isfinite(f["phi"]) | ~np.isfinite(f["lux"])
             r, c = (int(x) for x in np.argwhere(bad)[0])
@@ -296,7 +299,8 @@ def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, fram
         "noise_budget": budget,
         "render_noise_ratio": {"mean": float(np.nanmean(ratios)) if finite else None,
                                "max": float(np.nanmax(ratios)) if finite else None,
-                               "window_intervals": frames.W, "keyframes_per_window": frames.K, **verified},
+                               "window_intervals": frames.W, "keyframes_per_window": frames.K, **verified,
+                               "tiles": tile_summary(frames.tiles, float(ncfg["target_ratio"]))},
         "temporal_sampling": source.record(ticks),
         "static_reuse": frames.reuse.record(log),
         "n_rendered_this_run": frames.n_rendered,

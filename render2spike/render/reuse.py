@@ -196,11 +196,6 @@ class StaticFrame:
         self.valid = np.asarray(valid, bool)
 
 
-def _padded(n: int) -> int:
-    from .frozen import PIXEL_BUCKET
-    return -(-max(1, int(n)) // PIXEL_BUCKET) * PIXEL_BUCKET
-
-
 def render_frame_reused(rnd, static: StaticFrame, cov: Coverage, t_s: float, base_seed: int, spp: int,
                         variance: bool) -> dict:
     """The keyframe at ``t_s`` with static-region reuse: its dynamic pixels (``cov(t_s)``, and those without a
@@ -208,11 +203,12 @@ def render_frame_reused(rnd, static: StaticFrame, cov: Coverage, t_s: float, bas
     :meth:`.renderer.SceneRenderer.render_frame`, plus ``dynamic`` (bool (H, W)); with ``variance`` a second
     render of the dynamic pixels gives their variance, and ``phi_var`` holds the static frame's variance
     elsewhere."""
+    from .frozen import padded_pixels
     from .photometry import apply_factors
     from .sampling import frame_seeds
     dyn = cov(t_s) | ~static.valid
     pix = np.flatnonzero(dyn)
-    n = len(rnd.launch_counts(spp, n_pixels=_padded(pix.size)))
+    n = len(rnd.launch_counts(spp, n_pixels=padded_pixels(pix.size)))
     seeds = frame_seeds(base_seed, t_s, 2 * n)
     raw_p, raw_e = static.raw_p.copy(), static.raw_e.copy()
     a_p = None

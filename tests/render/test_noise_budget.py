@@ -249,3 +249,23 @@ def test_tick_levels_on_the_dyadic_grid():
     from render2spike.render.sampling import TimeGrid, tick_level
     g = TimeGrid.make(0.01, 1000.0, 8000.0)  # 3 levels, 8 ticks a base interval
     assert [tick_level(g, t) for t in range(0, 17)] == [0, 3, 2, 3, 1, 3, 2, 3, 0, 3, 2, 3, 1, 3, 2, 3, 0]
+
+
+def test_tile_ratios_are_the_frame_ratio_on_each_tile():
+    from render2spike.render.noise import render_noise_ratio, tile_ratios, tile_summary
+    rng = np.random.default_rng(5)
+    r = rng.uniform(5.0, 50.0, (20, 27))  # 3 x 4 tiles of 8 px, the last row and column partial
+    v = rng.uniform(0.0, 2.0, r.shape)
+    k = np.where(np.arange(27)[None, :] < 13, 3.2, 1.0) * np.ones_like(r)
+    t = tile_ratios(r, v, 64, k, dark_e=7.0)
+    assert t.shape == (3, 4)
+    for i in range(3):
+        for j in range(4):
+            sl = (slice(8 * i, 8 * i + 8), slice(8 * j, 8 * j + 8))
+            assert math.isclose(t[i, j], render_noise_ratio(r[sl], v[sl], 64, k[sl], 7.0), rel_tol=1e-12)
+    # one tile covering the frame is the frame's ratio
+    assert math.isclose(tile_ratios(r, v, 64, k, 7.0, tile_px=32)[0, 0], render_noise_ratio(r, v, 64, k, 7.0),
+                        rel_tol=1e-12)
+    s = tile_summary([np.array([[0.1, 0.2], [0.24, 0.3]]), np.array([[np.nan]])], 0.2)
+    assert s["n_tiles"] == 4 and s["fraction_in_band"] == 0.5 and s["fraction_above_band"] == 0.25
+    assert s["max"] == 0.3 and tile_summary([], 0.2)["n_tiles"] == 0
