@@ -19,7 +19,9 @@ its verified keyframes (:mod:`render2spike.render.noise`: ``sqrt(W mean(v_eff) /
 static check (the static pixels of a whole-frame render against the static frame: about 1 when nothing
 changed there). Samples per keyframe: the frames' mean spp (each frame's header) x pixels rendered (the
 dynamic fraction with reuse). Render CPU: the process's CPU time over the render (all threads), less moved
-by other work on a shared machine than the wall time. The load average is recorded before and after; the
+by other work on a shared machine than the wall time. Keyframes stage / bare launch: the stage's seconds over
+the time its samples take at the rate of a bare whole-frame launch of the same scene and spp, timed in the same
+process after the renders (1.00: the stage is all launch). The load average is recorded before and after; the
 ratio of the two modes is the figure, not either time.
 """
 
@@ -64,6 +66,32 @@ def one(scene_name: str, reuse: bool, duration_s: float, root: Path) -> dict:
                 k: m["noise_budget"].get(k) for k in ("spp_needed", "predicted_ratio", "clipped", "static")}}
 
 
+def bare_rate(scene_name: str, spp: int, duration_s: float) -> dict:
+    """samples/s of a bare whole-frame launch of the scene at ``spp`` (``SceneRenderer.render_raw``, the launch
+    the render job takes): 2 untimed calls, then the median of 5 timed ones at times spread over the clip."""
+    import statistics
+
+    from render2spike.render.renderer import SceneRenderer
+    from render2spike.render.scene import load_scene
+    rnd = SceneRenderer(load_scene(scene_name, duration_s=duration_s))
+    times = [duration_s * i / 4 for i in range(5)]
+    for t in times[:2]:
+        rnd.render_raw(t, 7, spp)
+    calls = []
+    for t in times:
+        t0 = time.perf_counter()
+        rnd.render_raw(t, 7, spp)
+        calls.append(time.perf_counter() - t0)
+    med = statistics.median(calls)
+    return {"spp": int(spp), "median_s": med, "samples_per_s": spp * rnd.height * rnd.width / med}
+
+
+def over_bare(row: dict, bare: dict) -> float:
+    """The keyframes stage's seconds over the seconds its samples take at the bare launch's rate."""
+    rate = bare[f"{row['scene']} {row['spp']}"]["samples_per_s"]
+    return row["stages_s"]["keyframes"] / (row["samples_per_keyframe"] * row["frames"] / rate)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -82,9 +110,11 @@ def main(argv=None) -> int:
                 rows.append(one(name, reuse, a.duration_s, Path(tmp)))
                 print(json.dumps({k: rows[-1][k] for k in ("scene", "reuse", "wall_s", "cpu_s", "ratio")}),
                       flush=True)
+        bare = {f"{r['scene']} {r['spp']}": bare_rate(r["scene"], r["spp"], a.duration_s)
+                for r in {(r["scene"], r["spp"]): r for r in rows}.values()}
     load1 = os.getloadavg()
     rec = {"machine": machine(), "load_before": load0, "load_after": load1, "duration_s": a.duration_s,
-           "rows": rows}
+           "rows": rows, "bare_launch": bare}
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "static_reuse.json").write_text(json.dumps(rec, indent=1, default=str))
     lines = ["# Static-region reuse: keyframe time and render noise, whole frames against reuse", "",
@@ -92,9 +122,9 @@ def main(argv=None) -> int:
              f"{load0[0]:.1f} before, {load1[0]:.1f} after. Clips of {a.duration_s:g} s, the scenes' own noise "
              "budget. `python benchmarks/static_reuse.py`.", "",
              "| scene | reuse | keyframes | spp by level (dynamic) | dynamic fraction | samples / keyframe | static spp | "
-             "keyframes stage [s] | pilot + static frame [s] | render CPU [s] | ratio (verified) | "
-             "static check z2 / limit |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "keyframes stage [s] | keyframes stage / bare launch | pilot + static frame [s] | render CPU [s] | "
+             "ratio (verified) | static check z2 / limit |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     best = {}
     for r in rows:  # the best (least CPU) render of each scene and mode
         k = (r["scene"], r["reuse"])
@@ -107,8 +137,18 @@ def main(argv=None) -> int:
         lines.append(f"| {r['scene']} | {'yes' if r['reuse'] else 'no'} | {r['frames']} | "
                      f"{' / '.join(map(str, r['spp_by_level'] or [r['spp']]))} | "
                      f"{r['dynamic_fraction']:.3f} | {r['samples_per_keyframe']:,.0f} | {r['static_spp'] or '-'} | "
-                     f"{r['stages_s']['keyframes']:.1f} | {r['stages_s']['pilot']:.1f} | {r['cpu_s']:.1f} | "
+                     f"{r['stages_s']['keyframes']:.1f} | "
+                     f"{over_bare(r, bare):.2f} | "
+                     f"{r['stages_s']['pilot']:.1f} | {r['cpu_s']:.1f} | "
                      f"{r['ratio'] if r['ratio'] is None else round(r['ratio'], 3)} | {chk} |")
+    lines.append("")
+    lines.append("Keyframes stage / bare launch: the stage's seconds over the time its samples (samples / keyframe x "
+                 "keyframes) take at the bare launch's rate, `SceneRenderer.render_raw` of the whole frame at the "
+                 "row's base spp, median of 5 calls after 2 untimed ones, in the same process after the renders: "
+                 + ", ".join(f"{n.split()[0]} at {b['spp']} spp {b['samples_per_s'] / 1e6:.2f} million samples/s"
+                             for n, b in bare.items())
+                 + ". 1.00 would be a stage that is all launch; the rest is the coverage test, the checks, the "
+                 "verified frames' second renders and Python.")
     lines.append("")
     for name in a.scenes.split(","):
         w = next((r for r in rows if r["scene"] == name and not r["reuse"]), None)
