@@ -58,6 +58,8 @@ freezing (the tests hold the two bitwise equal).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: spacing of the response tables [nm]
@@ -80,14 +82,32 @@ MAX_SAMPLES_PER_LAUNCH = 1 << 26
 #: traced and dropped) costs at most 1/PIXEL_STEPS of the samples
 PIXEL_BUCKET = 32
 PIXEL_STEPS = 32
+#: a list may also take a length already recorded at its spp when that is at most this fraction longer
+#: (:meth:`FrozenLaunch.pixel_length`): a list whose length wanders (a moving object's pixels) then replays a few
+#: recordings instead of making a new one (a trace and a garbage collection, 70-100 ms on 2 cores) every few frames
+PIXEL_SLACK = 0.125
+
+
+def _pixel_step(n: int) -> int:
+    return max(PIXEL_BUCKET, (1 << (max(1, int(n)).bit_length() - 1)) // PIXEL_STEPS)
 
 
 def padded_pixels(n: int) -> int:
-    """The length a list of ``n`` pixels is padded to for :meth:`FrozenLaunch.launch_pixels`: a multiple of
-    ``max(PIXEL_BUCKET, 2^floor(log2 n) / PIXEL_STEPS)`` (e.g. 2310 -> 2368: 2.5 % padding; 100 -> 128)."""
+    """The length a list of ``n`` pixels is padded to for :meth:`FrozenLaunch.launch_pixels` the first time at
+    its spp: a multiple of ``max(PIXEL_BUCKET, 2^floor(log2 n) / PIXEL_STEPS)`` (e.g. 2310 -> 2368: 2.5 %
+    padding; 100 -> 128)."""
     n = max(1, int(n))
-    step = max(PIXEL_BUCKET, (1 << (n.bit_length() - 1)) // PIXEL_STEPS)
+    step = _pixel_step(n)
     return -(-n // step) * step
+
+
+def max_padded_pixels(n: int) -> int:
+    """The longest a list of ``n`` pixels is padded to (:meth:`FrozenLaunch.pixel_length`): the largest multiple
+    of :func:`padded_pixels`' step within ``n (1 + PIXEL_SLACK)``, or that function's length. What the launch's
+    memory is planned for (:meth:`.renderer.SceneRenderer.launch_counts`)."""
+    n = max(1, int(n))
+    step = _pixel_step(n)
+    return max(padded_pixels(n), int(math.floor(n * (1.0 + PIXEL_SLACK))) // step * step)
 
 
 #: Mitsuba shape plugins that are triangle meshes (the scene builder's ``cube`` and mesh files). The film
@@ -313,6 +333,7 @@ class FrozenLaunch:
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
         self._fn_px = dr.freeze(self._launch_px) if self.frozen else self._launch_px
         self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
+        self._px_lengths = {}  # spp -> the padded pixel-list lengths recorded at it
 
     def max_samples(self) -> int:
         """:data:`MAX_SAMPLES_PER_LAUNCH`: the most samples one launch takes (its memory is 8 bytes a sample)."""
@@ -383,16 +404,18 @@ class FrozenLaunch:
 
         The same estimator as :meth:`launch` (rays, wavelengths, sums), on a list of pixels: the renderer's
         static-region reuse (:mod:`.reuse`) renders only the pixels something moving covers. The list is padded
-        (with its last pixel) to :func:`padded_pixels` pixels, whose values are dropped: the padded
+        (with its last pixel) to :meth:`pixel_length` pixels, whose values are dropped: the padded
         length is an input of the recording (one recording per length and spp), so a list that changes a little
-        from frame to frame replays the same recording. ``spp`` must be a count the sampler takes exactly."""
+        from frame to frame replays the same recording. A pixel's samples depend on its place in the list, the
+        seed and the spp, not on the padded length (tested), so which recording serves a list changes no value.
+        ``spp`` must be a count the sampler takes exactly."""
         mi = self.mi
         pixels = np.asarray(pixels, np.int64).ravel()
         n_pix = int(pixels.size)
         if n_pix == 0:
             return spp, n_pix, None
         spp = self.sample_count(spp)
-        padded = padded_pixels(n_pix)
+        padded = self.pixel_length(n_pix, spp)
         if padded * spp >= 1 << 32:
             from sensor.errors import InputError
             raise InputError(f"{n_pix} pixels at {spp} spp is 2^32 samples or more in one launch", field="spp")
@@ -401,6 +424,7 @@ class FrozenLaunch:
         idx[n_pix:] = pixels[-1]
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
         key = ("px", spp, padded)
+        self._px_lengths.setdefault(spp, set()).add(padded)
         if self.frozen and key not in self._seen_spp:
             import gc
             gc.collect()
@@ -408,6 +432,17 @@ class FrozenLaunch:
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         out = self._fn_px(self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx), padded)
         return spp, n_pix, out
+
+    def pixel_length(self, n_pix: int, spp: int) -> int:
+        """The padded length of a list of ``n_pix`` pixels at ``spp``: the shortest length already recorded at
+        ``spp`` that holds it and is at most :data:`PIXEL_SLACK` longer; else, the first time at ``spp``,
+        :func:`padded_pixels` (a list that keeps its length is padded little), and after that, when the length
+        wanders, :func:`max_padded_pixels` (room for the lists that follow)."""
+        recorded = self._px_lengths.get(int(spp), ())
+        fits = [n for n in recorded if n_pix <= n <= max_padded_pixels(n_pix)]
+        if fits:
+            return min(fits)
+        return max_padded_pixels(n_pix) if recorded else padded_pixels(n_pix)
 
     def pixel_values(self, launched) -> dict[str, np.ndarray]:
         """``{channel: float64 (n,)}``: the per-pixel means of a :meth:`launch_pixels`, in the order of its

@@ -315,8 +315,8 @@ class SceneRenderer:
         exactly ``spp`` samples each (:meth:`launch_counts` for that many pixels, one seed a launch); the frozen
         launch only (:meth:`.frozen.FrozenLaunch.launch_pixels`)."""
         pixels = np.asarray(pixels, np.int64).ravel()
-        from .frozen import padded_pixels
-        counts = self.launch_counts(spp, n_pixels=padded_pixels(pixels.size))
+        from .frozen import max_padded_pixels
+        counts = self.launch_counts(spp, n_pixels=max_padded_pixels(pixels.size))
         self.set_time(t_s)
         fl = self.frame_launch
         launched = []

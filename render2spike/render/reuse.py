@@ -203,12 +203,12 @@ def render_frame_reused(rnd, static: StaticFrame, cov: Coverage, t_s: float, bas
     :meth:`.renderer.SceneRenderer.render_frame`, plus ``dynamic`` (bool (H, W)); with ``variance`` a second
     render of the dynamic pixels gives their variance, and ``phi_var`` holds the static frame's variance
     elsewhere."""
-    from .frozen import padded_pixels
+    from .frozen import max_padded_pixels
     from .photometry import apply_factors
     from .sampling import frame_seeds
     dyn = cov(t_s) | ~static.valid
     pix = np.flatnonzero(dyn)
-    n = len(rnd.launch_counts(spp, n_pixels=padded_pixels(pix.size)))
+    n = len(rnd.launch_counts(spp, n_pixels=max_padded_pixels(pix.size)))
     seeds = frame_seeds(base_seed, t_s, 2 * n)
     raw_p, raw_e = static.raw_p.copy(), static.raw_e.copy()
     a_p = None

@@ -93,6 +93,28 @@ def test_a_pixel_list_launch_estimates_what_the_whole_frame_launch_does(write_sc
     assert abs(np.log(va.mean() / vb.mean())) < 4.5 * se, (va.mean(), vb.mean(), se)
 
 
+def test_a_pixel_list_takes_a_recorded_length_within_the_slack_and_its_values_do_not_depend_on_it(write_scene):
+    """The padded length serves the recording only: a pixel's values are the same whichever length the list is
+    padded to; a list reuses a length recorded at its spp when at most PIXEL_SLACK longer, else its own."""
+    from render2spike.render.frozen import PIXEL_SLACK, max_padded_pixels, padded_pixels
+    from render2spike.render.renderer import SceneRenderer
+    r = SceneRenderer(_scene(write_scene), launch="frozen")
+    r.set_time(0.001)
+    fl = r.frame_launch
+    pix = np.arange(40, 40 + 700)
+    own = fl.pixel_values(fl.launch_pixels(9, 16, r._cam_m, pix))["Phi"]
+    assert fl.pixel_length(700, 16) == padded_pixels(700) == 704
+    longer = np.arange(40, 40 + 760)  # a second length at 16 spp: room for growth, 760 * 1.125 -> 832
+    fl.pixel_values(fl.launch_pixels(9, 16, r._cam_m, longer))
+    assert fl.pixel_length(700, 16) == 704 and fl.pixel_length(690, 16) == 704  # the shortest that fits
+    assert fl.pixel_length(760, 16) == 832 == max_padded_pixels(760) <= 760 * (1 + PIXEL_SLACK)
+    assert fl.pixel_length(750, 16) == 832  # a recorded one, not padded_pixels' 768
+    assert fl.pixel_length(600, 16) == max_padded_pixels(600) == 672  # 704 would be more than the slack longer
+    assert fl.pixel_length(720, 4) == padded_pixels(720)  # lengths are per spp; the first one is tight
+    again = fl.pixel_values(fl.launch_pixels(9, 16, r._cam_m, np.arange(40, 40 + 750)))["Phi"]
+    assert np.array_equal(again[:700], own)  # padded to 832 this time: the same values
+
+
 def test_a_render_reuses_one_static_frame_and_checks_it(tmp_path, write_scene):
     from render2spike.render.job import render_scene
     from sensor.io.frames import read_frames
