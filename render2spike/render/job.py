@@ -113,7 +113,7 @@ def _render_locked(scene: Scene, folder: FramesFolder, overwrite: bool, progress
     t_pilot = time.perf_counter()
     reuse = _Reuse(rnd, scene, launch)
     spp, budget, var_floor = _noise_budget(rnd, scene, folder, log, reuse)
-    reuse.start(budget, var_floor, rnd)
+    reuse.start(budget, var_floor, rnd, folder)
     t_frames = time.perf_counter()
     source = FrameSource(scene, var_floor, rnd.rate_scale(), progress, level_var=budget["level_var"])
     frames = _Keyframes(rnd, scene, folder, source, spp, launch, scene_hash, reuse)
@@ -352,17 +352,51 @@ class _Reuse:
             out.update(spp=int(scene.render["spp"]), given=True)
         return out
 
-    def start(self, budget: dict, var_floor, rnd) -> None:
-        """Render the static frame (seeds from the render seed, so a resumed render makes the same one)."""
+    def start(self, budget: dict, var_floor, rnd, folder) -> None:
+        """Render the static frame (seeds from the render seed and the attempt, so a resumed render makes the same
+        one). With ``spp: auto`` its own pair measures its pixels' ratio (:func:`.reuse.static_ratio`); outside
+        ``[BAND[0], STATIC_ACCEPT]`` x the target it is rendered again at more or fewer samples
+        (:func:`.reuse.static_retry_spp`), at most :data:`.reuse.STATIC_ATTEMPTS` renders in all, and the one in
+        the band (else nearest the target without being above it) is kept. The count and attempt kept are saved in
+        the render state: a resumed render renders that frame directly."""
         if not self.on:
             return
-        from .reuse import StaticFrame
-        spp = int(budget["static"]["spp"])
-        n = len(rnd.launch_counts(spp))
-        # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
-        seeds = np.random.SeedSequence([int(rnd.scene.render["seed"]), 0x57A71C, 1]).generate_state(2 * n,
-                                                                                                   np.uint32)
-        self.static = StaticFrame(rnd, spp, seeds, ~self.dynamic_t0)
+        from .noise import BAND
+        from .reuse import STATIC_ACCEPT, STATIC_ATTEMPTS, StaticFrame, static_ratio, static_retry_spp
+        scene = rnd.scene
+        ncfg = scene.render["noise"]
+        st = budget["static"]
+        kept = folder.state.get("static_frame")
+        if kept is None and folder.n_resumed:  # frames made before the kept count was saved: their first frame
+            kept = {"spp": int(st["spp"]), "attempt": 0}
+        spp, attempt = (int(kept["spp"]), int(kept["attempt"])) if kept else (int(st["spp"]), 0)
+        target = float(ncfg["target_ratio"])
+        lo, hi = BAND[0] * target, STATIC_ACCEPT * target
+        W, dark = int(ncfg["window_intervals"]), dark_current_mean_e(scene.profile)
+        self.measured, made = [], {}
+        while True:
+            n = len(rnd.launch_counts(spp))
+            # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
+            seeds = np.random.SeedSequence([int(scene.render["seed"]), 0x57A71C, 1 + attempt]).generate_state(
+                2 * n, np.uint32)
+            made[attempt] = StaticFrame(rnd, spp, seeds, ~self.dynamic_t0)
+            ratio = static_ratio(made[attempt], rnd, W, dark)
+            self.measured.append({"spp": int(spp), "attempt": attempt, "ratio": ratio})
+            if kept or scene.render["spp"] != "auto" or not np.isfinite(ratio) or lo <= ratio <= hi \
+                    or attempt + 1 >= STATIC_ATTEMPTS:
+                break
+            nxt = static_retry_spp([(m["spp"], m["ratio"]) for m in self.measured], target, int(st["max_spp"]),
+                                   rnd.effective_spp)
+            if nxt is None:
+                break
+            spp, attempt = nxt, attempt + 1
+        if not kept:  # the attempt kept: in the band, else the one nearest the target that is not above it
+            ok = [m for m in self.measured if np.isfinite(m["ratio"]) and m["ratio"] <= hi]
+            best = min(ok, key=lambda m: abs(m["ratio"] - target)) if ok else self.measured[-1]
+            spp, attempt = best["spp"], best["attempt"]
+        self.static = made[attempt]
+        folder.state["static_frame"] = {"spp": int(spp), "attempt": int(attempt)}
+        folder.save_state()
         self.rnd = rnd
         self._floor_raw = var_floor / rnd._factors[0] ** 2  # one keyframe's variance [raw Phi units^2], smoothed
 
@@ -386,7 +420,7 @@ class _Reuse:
         if warn:
             log(f"render: warning: {warn}")
         st = self.static
-        return {"applied": True, "static_spp": st.spp, "static_seeds": st.seeds,
+        return {"applied": True, "static_spp": st.spp, "static_seeds": st.seeds, "static_measured": self.measured,
                 "static_pixels": int(st.valid.sum()),
                 "dynamic_fraction": {"t0": float(self.dynamic_t0.mean()),
                                      "mean": float(np.mean(self.dyn_fractions)) if self.dyn_fractions else None,

@@ -31,7 +31,9 @@ pixel (the errors of ``K`` keyframes average), but ``v`` itself for a static one
 same error). The dynamic region's spp comes from the pilot pairs (:func:`.noise.pilot_budget`) with the
 means taken over the dynamic pixels at t = 0; the static frame's from the same pilot pairs over the static
 pixels, with ``K = 1`` and the pair's average (variance halved), no more than :data:`STATIC_MAX_FACTOR` x
-``max_spp``.
+``max_spp``. The static frame's own two renders then measure its ratio (:func:`static_ratio`); outside the band it
+is rendered again at another count (:func:`static_retry_spp`, at most :data:`STATIC_ATTEMPTS` renders), because
+the pilot's levels are interpolated to its count and ``multijitter`` is not smooth in the count.
 
 A static pixel's error is one pattern for the whole clip: each window of ``W`` intervals meets the target, but
 averages over many windows (a rate over the whole clip) do not shrink it as they shrink the errors of
@@ -55,6 +57,13 @@ SUBPIXEL = 2
 DILATE_PX = 1
 #: the static frame takes at most this many times the scene's max_spp (it is rendered once per clip)
 STATIC_MAX_FACTOR = 8
+#: the static frame is kept when its own pair measures its pixels' ratio within [BAND[0], STATIC_ACCEPT] x the
+#: target; else it is rendered again (:func:`static_retry_spp`): the pilot's levels (4, 16, 64 ...) are interpolated
+#: to the static count, and ``multijitter`` counts of unequal strata (e.g. 30 = 5 x 6) measured up to 1.9x the
+#: variance predicted; 1.1: a measured ratio over thousands of pixels is good to a few per cent
+STATIC_ACCEPT = 1.1
+#: at most this many renders of the static frame
+STATIC_ATTEMPTS = 4
 #: the static check warns when its mean normalised squared difference exceeds 1 by this many of its own
 #: standard errors (sqrt(2 / n) for n pixels of chi-square with one degree of freedom)
 STATIC_CHECK_SIGMAS = 6.0
@@ -154,6 +163,16 @@ def region_means(frames: list[np.ndarray], mask: np.ndarray) -> float:
 MIN_BUDGET_PIXELS = 64
 
 
+def square_count(n: int, cap: int, exact) -> int:
+    """The least square count ``k^2 >= n`` (``multijitter`` then lays ``k x k`` strata, as at the pilot's levels 4,
+    16, 64 ..., so the pilot's interpolation holds there; unequal strata such as 30 = 5 x 6 measured up to 1.9x
+    the variance it predicts), as the sampler takes it, at most ``cap`` (then the largest exact count below)."""
+    from .noise import exact_below
+    k = math.isqrt(max(1, int(n)) - 1) + 1  # ceil(sqrt(n))
+    m = exact(k * k)
+    return m if m <= cap else exact_below(exact, cap)
+
+
 def static_spp(pilot: dict, mask: np.ndarray, rate_e: np.ndarray, rate_scale: float, window_intervals: int,
                target_ratio: float, max_spp: int, exact) -> dict:
     """The static frame's spp: each of its two renders at this count, averaged, gives the static pixels a
@@ -179,6 +198,53 @@ def static_spp(pilot: dict, mask: np.ndarray, rate_e: np.ndarray, rate_scale: fl
     pred = math.sqrt(window_intervals * model(n) / 2.0 / r) if model is not None and r > 0 else float("nan")
     return {"spp": int(n), "spp_needed": int(need), "clipped": bool(need > cap), "predicted_ratio": pred,
             "n_pixels": int(mask.sum()), "mean_rate_e": r, "max_spp": cap}
+
+
+def static_ratio(static: "StaticFrame", rnd, window_intervals: int, dark_e: float) -> float:
+    """The render-noise ratio of the static frame's own pixels, ``sqrt(W mean(v) / mean(r + d))`` with ``v``
+    the variance of its average (``K = 1``), measured by its two renders; nan without static pixels."""
+    from .noise import render_noise_ratio
+    m = static.valid
+    if not m.any():
+        return float("nan")
+    fp = np.broadcast_to(np.asarray(rnd._factors[0], np.float64), m.shape)[m] * rnd.rate_scale()  # raw -> rate_e
+    return render_noise_ratio(static.raw_p[m] * fp, static.var_p[m] * fp ** 2, window_intervals, 1.0, dark_e)
+
+
+def static_retry_spp(measured: list[tuple[int, float]], target_ratio: float, cap: int, exact) -> int | None:
+    """The count to render the static frame again at, from the ``(spp, ratio)`` pairs measured so far (the last
+    one missed the band); None when there is no new count to try.
+
+    Between a count measured above the target and one below it: the power law through the nearest such pair,
+    solved for the target. Above every count measured: the variance taken to fall like 1/n (the slowest the
+    sampler converges, so conservative). Below every one: the ratio taken to grow like 1/n as the count falls (the
+    variance like 1/n^2, the fastest). The answer at a square count (:func:`square_count`; the nearest one, and
+    the nearest count the sampler takes below 4), within ``[1, cap]``, not one measured already."""
+    from .noise import exact_below
+    seen = {int(n) for n, _ in measured}
+    hi = [(n, r) for n, r in measured if r > target_ratio]  # counts that missed above
+    lo = [(n, r) for n, r in measured if r <= target_ratio]
+    if hi and lo and max(n for n, _ in hi) < min(n for n, _ in lo):
+        (n1, r1), (n2, r2) = max(hi), min(lo)
+        slope = math.log(r1 / r2) / math.log(n2 / n1) if r2 > 0 and r1 > r2 else 1.0  # ratio ~ n^-slope
+        want = n1 * (r1 / target_ratio) ** (1.0 / max(slope, 1e-6))
+        # the square count strictly between the two nearest the answer (in log), else the nearest exact count
+        sq = [exact(k * k) for k in range(math.isqrt(n1) + 1, math.isqrt(max(n2 - 1, 0)) + 1)]
+        sq = [m for m in sq if n1 < m < n2] or [exact(int(round(min(max(want, n1 + 1), n2 - 1))))]
+        m = min(sq, key=lambda c: abs(math.log(c / want)))
+        return None if m in seen or not n1 < m < n2 else int(m)
+    elif not lo:  # every count so far too noisy
+        n1, r1 = max(hi)
+        want = max(n1 * (r1 / target_ratio) ** 2, n1 + 1)
+    else:  # every count so far below the band
+        n2, r2 = min(lo)
+        want = max(1.0, n2 * r2 / target_ratio)
+    k = max(1, int(round(math.sqrt(want))))
+    m = exact(k * k) if want >= 4 else exact(max(1, int(round(want))))
+    if not lo and m < want:  # going up: at least the conservative count
+        m = square_count(int(math.ceil(want - 1e-9)), cap, exact)
+    m = min(m, exact_below(exact, cap)) if m > cap else m
+    return None if m in seen else int(m)
 
 
 class StaticFrame:

@@ -211,6 +211,64 @@ def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path,
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
 
 
+def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_kept(tmp_path, write_scene,
+                                                                                     monkeypatch):
+    """A static count far below the need (1 spp, forced): its own pair measures it above the band, so the frame is
+    rendered again at more samples until its ratio is in the band; the attempts are in the manifest, and a render
+    killed after two keyframes and resumed makes the same static frame (its count and attempt kept in the state),
+    so the same frames."""
+    from render2spike.render import reuse as reuse_mod
+    from render2spike.render.job import render_scene
+    from render2spike.render.noise import BAND
+    from tests.render.test_reproducible import _assert_same_frames
+    orig_spp = reuse_mod.static_spp
+
+    def too_few(*args, **kw):
+        return dict(orig_spp(*args, **kw), spp=1)
+
+    monkeypatch.setattr(reuse_mod, "static_spp", too_few)
+    scene = _scene(write_scene, duration_s=0.006, render=dict(BASE["render"], keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False}))
+    whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
+    sr = whole.manifest["static_reuse"]
+    tried = sr["static_measured"]
+    assert len(tried) >= 2 and tried[0]["spp"] == 1 and tried[0]["ratio"] > BAND[1] * 0.2
+    kept = next(t for t in tried if t["spp"] == sr["static_spp"])
+    assert BAND[0] * 0.2 <= kept["ratio"] <= 1.1 * 0.2
+    orig, calls = reuse_mod.render_frame_reused, {"n": 0}
+
+    def killed(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise KeyboardInterrupt
+        return orig(*args, **kw)
+
+    monkeypatch.setattr(reuse_mod, "render_frame_reused", killed)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    monkeypatch.setattr(reuse_mod, "render_frame_reused", orig)
+    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    assert res.manifest["static_reuse"]["static_measured"] == [kept]  # rendered once, as kept
+    _assert_same_frames(tmp_path / "a", tmp_path / "b")
+
+
+def test_static_retry_counts():
+    from render2spike.render.reuse import square_count, static_retry_spp
+    e = lambda k: k  # noqa: E731  (a sampler that takes every count)
+    assert [square_count(n, 1000, e) for n in (1, 2, 4, 5, 17, 30, 64)] == [1, 4, 4, 9, 25, 36, 64]
+    assert square_count(2000, 1024, e) == 1024
+    assert static_retry_spp([(30, 0.272)], 0.2, 1024, e) == 64  # up like 1/n: 55.5 -> the next square
+    assert static_retry_spp([(64, 0.0985)], 0.2, 1024, e) == 36  # down like 1/n^2: 31.5 -> the nearest square
+    assert static_retry_spp([(3, 0.138)], 0.2, 1024, e) == 2  # below 4: the nearest count
+    assert static_retry_spp([(4, 0.3)], 0.2, 8, e) == 8  # capped
+    assert static_retry_spp([(1, 0.1)], 0.2, 8, e) is None  # nothing below 1
+    # between a count above the target and one below: the power law through them (here ratio ~ 1/n: 32 -> 36)
+    assert static_retry_spp([(16, 0.4), (64, 0.1)], 0.2, 1024, e) == 36
+    assert static_retry_spp([(16, 0.4), (64, 0.1), (36, 0.2 * 1.2)], 0.2, 1024, e) == 49
+    assert static_retry_spp([(30, 0.3), (36, 0.1)], 0.2, 1024, e) == 32  # no square between: the nearest count
+    assert static_retry_spp([(30, 0.3), (31, 0.1)], 0.2, 1024, e) is None  # nothing between
+
+
 def test_a_given_spp_is_the_static_frames_too(tmp_path, write_scene):
     from render2spike.render.job import render_scene
     scene = _scene(write_scene, duration_s=0.003, render=dict(BASE["render"], spp=16, keyframe_rate_hz=1000,
