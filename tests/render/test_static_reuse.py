@@ -184,16 +184,10 @@ def test_a_mover_that_enters_the_view_later_is_budgeted_on_the_whole_frame(tmp_p
     assert all(c["z2_mean"] < c["limit"] for c in sr["static_check"])
 
 
-def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path, write_scene, monkeypatch):
-    """The static frame is made again from the render seed on resume: the frames of a render killed after two
-    keyframes and resumed are byte for byte those of an uninterrupted one."""
+def _killed_after_two_and_resumed(scene, out, monkeypatch):
+    """Render ``scene`` into ``out``, killed after two keyframes, then resumed; -> the resumed render's result."""
     from render2spike.render import reuse as reuse_mod
     from render2spike.render.job import render_scene
-    from tests.render.test_reproducible import _assert_same_frames
-    scene = _scene(write_scene, duration_s=0.006, render=dict(BASE["render"], keyframe_rate_hz=1000,
-                                                              adaptive={"enabled": False}))
-    whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
-    assert whole.manifest["static_reuse"]["applied"]
     orig, calls = reuse_mod.render_frame_reused, {"n": 0}
 
     def killed(*args, **kw):
@@ -204,9 +198,22 @@ def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path,
 
     monkeypatch.setattr(reuse_mod, "render_frame_reused", killed)
     with pytest.raises(KeyboardInterrupt):
-        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+        render_scene(scene, out, progress=False, log=lambda *a: None)
     monkeypatch.setattr(reuse_mod, "render_frame_reused", orig)
-    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    res = render_scene(scene, out, progress=False, log=lambda *a: None)
+    return res
+
+
+def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path, write_scene, monkeypatch):
+    """The static frame is made again from the render seed on resume: the frames of a render killed after two
+    keyframes and resumed are byte for byte those of an uninterrupted one."""
+    from render2spike.render.job import render_scene
+    from tests.render.test_reproducible import _assert_same_frames
+    scene = _scene(write_scene, duration_s=0.006, render=dict(BASE["render"], keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False}))
+    whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
+    assert whole.manifest["static_reuse"]["applied"]
+    res = _killed_after_two_and_resumed(scene, tmp_path / "b", monkeypatch)
     assert res.n_rendered == res.n_frames - 2
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
 
@@ -235,19 +242,7 @@ def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_ke
     assert len(tried) >= 2 and tried[0]["spp"] == 1 and tried[0]["ratio"] > BAND[1] * 0.2
     kept = next(t for t in tried if t["spp"] == sr["static_spp"])
     assert BAND[0] * 0.2 <= kept["ratio"] <= 1.1 * 0.2
-    orig, calls = reuse_mod.render_frame_reused, {"n": 0}
-
-    def killed(*args, **kw):
-        calls["n"] += 1
-        if calls["n"] > 2:
-            raise KeyboardInterrupt
-        return orig(*args, **kw)
-
-    monkeypatch.setattr(reuse_mod, "render_frame_reused", killed)
-    with pytest.raises(KeyboardInterrupt):
-        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
-    monkeypatch.setattr(reuse_mod, "render_frame_reused", orig)
-    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    res = _killed_after_two_and_resumed(scene, tmp_path / "b", monkeypatch)
     assert res.manifest["static_reuse"]["static_measured"] == [kept]  # rendered once, as kept
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
 
