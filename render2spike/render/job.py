@@ -367,8 +367,8 @@ class _Reuse:
         ncfg = scene.render["noise"]
         st = budget["static"]
         kept = folder.state.get("static_frame")
-        if kept is None and folder.n_resumed:  # frames made before the kept count was saved: their first frame
-            kept = {"spp": int(st["spp"]), "attempt": 0}
+        if kept is None and folder.n_resumed:  # a render state without the kept frame: its frames were made with
+            kept = {"spp": int(st["spp"]), "attempt": 0}  # the budget's count, first attempt
         spp, attempt = (int(kept["spp"]), int(kept["attempt"])) if kept else (int(st["spp"]), 0)
         target = float(ncfg["target_ratio"])
         lo, hi = BAND[0] * target, STATIC_ACCEPT * target
