@@ -264,10 +264,10 @@ def emitter_sampling_weights(scene: Scene, motions: dict | None = None, sky_by_n
     weight when the emitter's selection probability is 0), which for a constant sky is cosine sampling on a
     diffuse surface, no worse than the sky's own uniform-sphere sampling; and every shadow ray goes to the
     other lights, so a sun no longer loses a few per cent of its samples to the sky. On the README's scene
-    (a sun and a sky of 7 % of its light) that cuts the render variance at 64 spp 3.9x, on translating_object
+    (a sun and a sky of 7 % of its light) that cuts the render variance at 64 spp 4.2x, on translating_object
     2.4x, on room_pan (a panel and a sky) 1.5x, with means equal within their errors
-    (``tests/render/test_sky_sampling.py``). A sky that is the only light keeps its weight (something must be
-    sampled). ``sky_by_nee``: keep the sky's weight ~ pi L as the other lights' (the two strategies mixed;
+    (``benchmarks/light_sampling.py``, ``tests/render/test_sky_sampling.py``). A sky that is the only light keeps
+    its weight (something must be sampled). ``sky_by_nee``: keep the sky's weight ~ pi L as the other lights' (the two strategies mixed;
     for comparison). -> ``{light or object name: weight}``.
     """
     from .photometry import v_integral
