@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import os
 import statistics
 import sys
@@ -101,14 +100,12 @@ def main(argv=None) -> int:
     ap.add_argument("--renders", type=int, default=8, help="independent renders per mode (default 8)")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = ap.parse_args(argv)
-    from benchmarks.tables import machine
+    from benchmarks.tables import machine, write_report
     load0 = os.getloadavg()
     rows = [compare(s, a.spp, a.renders) for s in a.scenes.split(",")]
     load1 = os.getloadavg()
     rec = {"machine": machine(), "load_before": load0, "load_after": load1, "command": " ".join(sys.argv),
            "rows": rows}
-    a.out.mkdir(parents=True, exist_ok=True)
-    (a.out / "light_sampling.json").write_text(json.dumps(rec, indent=1))
     lines = ["# Light sampling: the sky left to BSDF-sampled rays against the sky also taking shadow rays", "",
              f"Machine: {rec['machine']['cpu']}, {rec['machine']['cores']} cores; load average {load0[0]:.1f} "
              f"before, {load1[0]:.1f} after. `python benchmarks/light_sampling.py` ({a.renders} renders per mode at "
@@ -123,8 +120,7 @@ def main(argv=None) -> int:
                      f"{r['mixed']['ratio']:.3f} / {r['bsdf']['ratio']:.3f} | "
                      f"{r['mean_difference_relative']:+.1e} ({r['mean_difference_z']:+.2f}) | "
                      f"{r['mixed']['median_s']:.3f} / {r['bsdf']['median_s']:.3f} |")
-    (a.out / "light_sampling.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(a.out, "light_sampling", lines, rec)
     return 0
 
 

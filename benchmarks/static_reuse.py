@@ -101,7 +101,7 @@ def main(argv=None) -> int:
                     help="1: whole then reuse; 2 (default): whole, reuse, reuse, whole, the best of each kept")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = ap.parse_args(argv)
-    from benchmarks.tables import machine
+    from benchmarks.tables import machine, write_report
     load0 = os.getloadavg()
     rows = []
     with tempfile.TemporaryDirectory(prefix="r2s-reuse-") as tmp:
@@ -115,8 +115,6 @@ def main(argv=None) -> int:
     load1 = os.getloadavg()
     rec = {"machine": machine(), "load_before": load0, "load_after": load1, "duration_s": a.duration_s,
            "rows": rows, "bare_launch": bare}
-    a.out.mkdir(parents=True, exist_ok=True)
-    (a.out / "static_reuse.json").write_text(json.dumps(rec, indent=1, default=str))
     lines = ["# Static-region reuse: keyframe time and render noise, whole frames against reuse", "",
              f"Machine: {rec['machine']['cpu']}, {rec['machine']['cores']} cores; load average "
              f"{load0[0]:.1f} before, {load1[0]:.1f} after. Clips of {a.duration_s:g} s, the scenes' own noise "
@@ -158,8 +156,7 @@ def main(argv=None) -> int:
                          f"whole frames ({u['wall_s'] / w['wall_s']:.2f}x the wall time; keyframes stage "
                          f"{u['stages_s']['keyframes'] / w['stages_s']['keyframes']:.2f}x), for "
                          f"{u['samples_per_keyframe'] / w['samples_per_keyframe']:.2f}x the samples per keyframe.")
-    (a.out / "static_reuse.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(a.out, "static_reuse", lines, rec)
     return 0
 
 

@@ -31,3 +31,15 @@ def machine() -> dict:
     except (OSError, subprocess.TimeoutExpired):
         pass
     return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "gpu": gpu}
+
+
+def write_report(out_dir, stem: str, lines: list[str], record: dict | None = None) -> None:
+    """Write ``OUT/STEM.md`` (the lines) and, with ``record``, ``OUT/STEM.json``; print the table."""
+    import json
+    from pathlib import Path
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if record is not None:
+        (out_dir / f"{stem}.json").write_text(json.dumps(record, indent=1, default=str))
+    (out_dir / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
