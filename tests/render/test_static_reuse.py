@@ -234,8 +234,9 @@ def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_ke
         return dict(orig_spp(*args, **kw), spp=1)
 
     monkeypatch.setattr(reuse_mod, "static_spp", too_few)
-    scene = _scene(write_scene, duration_s=0.006, render=dict(BASE["render"], keyframe_rate_hz=1000,
-                                                              adaptive={"enabled": False}))
+    scene = _scene(write_scene, duration_s=0.004, render=dict(BASE["render"], keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False},
+                                                              noise={"max_spp": 16}))  # static frame <= 128 spp
     whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
     sr = whole.manifest["static_reuse"]
     tried = sr["static_measured"]
