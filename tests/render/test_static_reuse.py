@@ -210,7 +210,8 @@ def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path,
     from render2spike.render.job import render_scene
     from tests.render.test_reproducible import _assert_same_frames
     scene = _scene(write_scene, duration_s=0.006, render=dict(BASE["render"], keyframe_rate_hz=1000,
-                                                              adaptive={"enabled": False}))
+                                                              adaptive={"enabled": False},
+                                                              noise={"max_spp": 16}))  # a cheap budget
     whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
     assert whole.manifest["static_reuse"]["applied"]
     res = _killed_after_two_and_resumed(scene, tmp_path / "b", monkeypatch)
