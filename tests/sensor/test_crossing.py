@@ -19,11 +19,18 @@ from sensor.analysis import theory
 from sensor.profile import PROFILE_VERSION, RESETS
 
 from ..conftest import Z
+from .crossing_checks import (check_hot_pixel_current_fires_at_every_whole_threshold,
+                              check_prnu_gain_sets_the_photoelectrons_needed, nth_isis)
 
 IMPLS = ["reference", "fast"]
 #: for the reference implementation's longest runs: slow tests (the fast one checks the same oracle by default,
 #: and the fast-vs-reference tests below keep the reference in the default run)
 IMPLS_SLOW_REFERENCE = [pytest.param("reference", marks=pytest.mark.slow), "fast"]
+
+
+def _sim(impl):
+    """``sim(rate, profile, seed)`` of :mod:`tests.sensor.crossing_checks` on implementation ``impl``."""
+    return lambda r, p, seed: sensor.simulate(r, p, "elssim", seed=seed, implementation=impl)
 
 
 def crossing_profile(h, w, theta, **kw):
@@ -164,17 +171,6 @@ def test_readout_lag1_isi_correlation_matches_the_phase_chain(impl, slow_scale):
     assert abs(rho * var) > 10 * Z * se
 
 
-def nth_isis(s, j):
-    """The j-th read-out ISI (1-based: between spikes j and j+1) of every pixel that has one."""
-    flat = s.reshape(s.shape[0], -1)
-    out = []
-    for c in range(flat.shape[1]):
-        t = np.flatnonzero(flat[:, c])
-        if t.size > j:
-            out.append(t[j] - t[j - 1])
-    return np.asarray(out)
-
-
 def discrete_ks(sample, pmf_support, pmf):
     """Exact KS statistic of a sample against a discrete law on ``pmf_support`` and its (conservative) p-value."""
     cdf = np.cumsum(pmf)
@@ -306,38 +302,13 @@ def test_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(impl):
 
 @pytest.mark.parametrize("impl", IMPLS)
 def test_prnu_gain_sets_the_photoelectrons_needed(impl):
-    lam, theta, T, H, W = 3.0, 20.0, 2000, 30, 20
-    gain = np.where(np.arange(H * W).reshape(H, W) % 2 == 0, 0.8, 1.25).astype(np.float32)
-    prof = crossing_profile(H, W, theta).replace(prnu_gain=gain)
-    s = sensor.simulate(np.full((T, H, W), lam, np.float32), prof, "elssim", seed=13, implementation=impl)
-    for g, k in ((0.8, 25), (1.25, 16)):
-        sel = gain == np.float32(g)
-        expected = theory.crossing_readout_probability(np.full(T, lam), k).sum()
-        _, var = theory.crossing_window_count_moments(lam, k, T)
-        counts = s[:, sel].sum(axis=0)
-        assert abs(counts.mean() - expected) < Z * np.sqrt(var / counts.size), (g, counts.mean(), expected)
+    check_prnu_gain_sets_the_photoelectrons_needed(_sim(impl), crossing_profile)
 
 
 # -------------------------------------------------------------------------------------------- hot pixels
 @pytest.mark.parametrize("impl", IMPLS_SLOW_REFERENCE)
 def test_hot_pixel_current_fires_at_every_whole_threshold(impl):
-    # no light, no dark, f = 0, current X_m ~ N(mu, sigma^2) theta per interval with P(X < 0) ~ 1e-12: the charge
-    # is never clipped and each firing keeps the rest of the interval's charge, so the firings by interval T are
-    # exactly floor(S_T), S_T = sum of T currents ~ N(T mu, T sigma^2); X < 1 gives at most one per interval.
-    H, W, T, mu, sig = 10, 10, 3000, 0.07, 0.01
-    prof = crossing_profile(H, W, 500.0)
-    mask = np.ones((H, W), bool)
-    prof = prof.replace(hot_mask=mask, hot_mu=np.full((H, W), mu), hot_sigma=np.full((H, W), sig))
-    s = sensor.simulate(np.zeros((T, H, W), np.float32), prof, "elssim", seed=14, implementation=impl)
-    j = np.arange(1, int(T * mu + 20 * np.sqrt(T) * sig + 10))
-    tail = stats.norm.sf((j - T * mu) / (sig * np.sqrt(T)))  # P(S_T >= j)
-    m1 = tail.sum()
-    m2 = ((2 * j - 1) * tail).sum()
-    counts = s.sum(axis=0).ravel()
-    se = np.sqrt((m2 - m1 * m1) / counts.size)
-    assert abs(counts.mean() - m1) < Z * se, (counts.mean(), m1, se)
-    # teeth: the interval reset fires every ceil(1 / X) intervals, about T / 15 = 200 < 209.5
-    assert abs(T / np.ceil(1 / mu) - m1) > 10 * Z * se
+    check_hot_pixel_current_fires_at_every_whole_threshold(_sim(impl), crossing_profile)
 
 
 # -------------------------------------------------------------------------------- time-varying input

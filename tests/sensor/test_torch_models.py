@@ -32,6 +32,8 @@ from sensor.models.effects import count_threshold
 from sensor.units import INTERVAL_S
 
 from ..conftest import Z
+from .crossing_checks import (check_hot_pixel_current_fires_at_every_whole_threshold,
+                              check_prnu_gain_sets_the_photoelectrons_needed, nth_isis)
 
 torch = pytest.importorskip("torch")
 from sensor.models import torch_models  # noqa: E402
@@ -76,17 +78,6 @@ def isis(s, skip_first=True):
     flat = s.reshape(s.shape[0], -1)
     out = [np.diff(np.flatnonzero(flat[:, j]))[1 if skip_first else 0:] for j in range(flat.shape[1])]
     return np.concatenate(out)
-
-
-def nth_isis(s, j):
-    """The j-th read-out ISI of every pixel that has one (one per pixel: independent samples)."""
-    flat = s.reshape(s.shape[0], -1)
-    out = []
-    for c in range(flat.shape[1]):
-        t = np.flatnonzero(flat[:, c])
-        if t.size > j:
-            out.append(t[j] - t[j - 1])
-    return np.asarray(out)
 
 
 def ks_agree(a, b, what=""):
@@ -280,30 +271,13 @@ def test_crossing_refractory_blind_time_lowers_the_rate_as_renewal_theory_says(d
 
 @pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_prnu_gain_sets_the_photoelectrons_needed(device):
-    lam, theta, T, H, W = 3.0, 20.0, 2000, 30, 20
-    gain = np.where(np.arange(H * W).reshape(H, W) % 2 == 0, 0.8, 1.25).astype(np.float32)
-    p = crossing(H, W, theta).replace(prnu_gain=gain)
-    s = run(np.full((T, H, W), lam, np.float32), p, device, seed=13)
-    for g, k in ((0.8, 25), (1.25, 16)):
-        sel = gain == np.float32(g)
-        expected = theory.crossing_readout_probability(np.full(T, lam), k).sum()
-        _, var = theory.crossing_window_count_moments(lam, k, T)
-        counts = s[:, sel].sum(axis=0)
-        assert abs(counts.mean() - expected) < Z * np.sqrt(var / counts.size), (g, counts.mean(), expected)
+    check_prnu_gain_sets_the_photoelectrons_needed(lambda r, p, seed: run(r, p, device, seed=seed), crossing)
 
 
 @pytest.mark.parametrize("device", STAT_DEVICES)
 def test_crossing_hot_pixel_current_fires_at_every_whole_threshold(device):
-    # no light, no dark, f = 0: the firings by interval T are exactly floor(S_T), S_T ~ N(T mu, T sigma^2)
-    H, W, T, mu, sig = 10, 10, 3000, 0.07, 0.01
-    p = crossing(H, W, 500.0).replace(hot_mask=np.ones((H, W), bool), hot_mu=np.full((H, W), mu),
-                                      hot_sigma=np.full((H, W), sig))
-    s = run(np.zeros((T, H, W), np.float32), p, device, seed=14)
-    j = np.arange(1, int(T * mu + 20 * np.sqrt(T) * sig + 10))
-    tail = stats.norm.sf((j - T * mu) / (sig * np.sqrt(T)))  # P(S_T >= j)
-    m1, m2 = tail.sum(), ((2 * j - 1) * tail).sum()
-    counts = s.sum(axis=0).ravel()
-    assert abs(counts.mean() - m1) < Z * np.sqrt((m2 - m1 * m1) / counts.size), (counts.mean(), m1)
+    check_hot_pixel_current_fires_at_every_whole_threshold(lambda r, p, seed: run(r, p, device, seed=seed),
+                                                           crossing)
 
 
 @pytest.mark.parametrize("device", DENSE_DEVICES)
