@@ -210,8 +210,11 @@ def static_ratio(static: "StaticFrame", rnd, window_intervals: int, dark_e: floa
     m = static.valid
     if not m.any():
         return float("nan")
-    fp = np.broadcast_to(np.asarray(rnd._factors[0], np.float64), m.shape)[m] * rnd.rate_scale()  # raw -> rate_e
-    return render_noise_ratio(static.raw_p[m] * fp, static.var_p[m] * fp ** 2, window_intervals, 1.0, dark_e)
+    from .photometry import apply_factors
+    phi = apply_factors(static.raw_p, static.raw_e, rnd._factors)[0]  # as a keyframe's (render_frame_reused)
+    phi_var = static.var_p * rnd._factors[0] ** 2
+    return render_noise_ratio(rnd.rate_e(phi)[m], phi_var[m] * rnd.rate_scale() ** 2, window_intervals, 1.0,
+                              dark_e)
 
 
 def static_retry_spp(measured: list[tuple[int, float]], target_ratio: float, cap: int, exact) -> int | None:
