@@ -609,3 +609,30 @@ def test_a_launch_hands_the_camera_pose_over_in_one_buffer_and_replays(write_sce
     want = fl.primary_rays(mi.Transform4f(r._cam_m.tolist()), pos)
     for a, b in zip(got, want):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_a_scene_loads_its_objects_in_one_order_so_its_kernels_hit_the_cache(write_scene):
+    # The path tracer's kernel holds registry ids of the scene's objects as constants (the environment emitter's,
+    # for one), so Dr.Jit's kernel cache on disk serves a later process only when its objects get the same ids.
+    # Mitsuba's parallel loading made them in the order its threads happened to run (key/sky as 1/2 or 2/1 in 3 of 6
+    # processes: each such run compiled the path tracer's kernels again); loaded in one thread, in the scene's order,
+    # every load gives the same ids. Here four loads, each of which the parallel loader got wrong half of the time
+    import drjit as dr
+    from render2spike.render.renderer import SceneRenderer
+    from tests.render.conftest import BASE
+    lights = BASE["lights"] + [
+        {"name": "fill", "type": "point", "position": [0.3, 0.2, 0.8], "strength": 0.5, "spectrum": {"blackbody_k": 4000}},
+        {"name": "sky", "type": "environment", "strength": 0.02, "spectrum": {"blackbody_k": 6500}}]
+    from render2spike.render.scene import load_scene
+    scene = load_scene(write_scene({"lights": lights, "objects": MOVING,
+                                    "reference": {"point": [0, 0, 0.05], "normal": [0, 0, 1]}}))
+    seen, cal = [], None
+    for _ in range(4):
+        _collect()
+        r = SceneRenderer(scene, launch="frozen", calibration=cal)  # the light meter once
+        mi, cal = r.mi, r.calibration
+        ids = [(e.id(), int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(e))[0])) for e in r.mi_scene.emitters()]
+        ids += [(s.id(), int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0])) for s in r.mi_scene.shapes()]
+        seen.append(ids)
+        del r, mi
+    assert all(s == seen[0] for s in seen), seen
