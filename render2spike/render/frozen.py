@@ -328,6 +328,7 @@ class FrozenLaunch:
         self._tan = float(np.tan(np.radians(float(fov_x_deg)) / 2.0))
         self._near, self._far = float(near_clip), float(far_clip)
         self._sampler = mi.load_dict({"type": sampler_type, "sample_count": 1})
+        self._all_pixels = mi.UInt32(np.arange(self.height * self.width, dtype=np.uint32))  # a frame's list
         self._integrator = mi_scene.integrator()
         self.frozen = bool(frozen)
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
@@ -378,7 +379,7 @@ class FrozenLaunch:
             self._seen_spp.add(spp)
         try:
             seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
-            out = self._fn(self.scene, seed_v, m, spp, self._tables, self._quantiles)
+            out = self._fn(self.scene, seed_v, m, spp, self._tables, self._quantiles, self._all_pixels)
         except RuntimeError as exc:
             if not self.frozen:
                 raise
@@ -453,11 +454,11 @@ class FrozenLaunch:
         return {c: np.asarray(x, dtype=np.float64)[:n_pix] / spp for c, x in zip(self.names, out)}
 
     # --------------------------------------------------------- the recorded function
-    def _launch(self, scene, seed, m, spp, tables, quantiles):
-        mi, dr = self.mi, self.dr
-        n = self.height * self.width * spp
-        idx = dr.arange(mi.UInt32, n) // spp  # the sample's pixel: spp consecutive samples each
-        return self._trace(scene, seed, m, spp, tables, quantiles, idx, n)
+    def _launch(self, scene, seed, m, spp, tables, quantiles, pixels):
+        # every pixel, through the pixel list's gather: the kernel is then the one a list launch at the same count
+        # compiles (one path-tracer kernel per count, not two; a first run compiles each count once), and its
+        # values are the same as from the sample index alone
+        return self._launch_px(scene, seed, m, spp, tables, quantiles, pixels, self.height * self.width)
 
     def _launch_px(self, scene, seed, m, spp, tables, quantiles, pixels, n_pix):
         mi, dr = self.mi, self.dr

@@ -180,7 +180,8 @@ def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log, reuse: "_Reuse")
     with keep:
         budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rnd.rate_scale(), snap=rcfg["spp"] == "auto",
                                             dark_e=dark_current_mean_e(scene.profile), mask=reuse.budget_mask(),
-                                            keep=pairs, level_factors=factors)
+                                            keep=pairs, level_factors=factors,
+                                            keep_raw=reuse.pilot_raw if reuse.on else None)
     if reuse.on:
         budget["static"] = reuse.static_budget(pairs, rnd, scene)
     state = folder.state
@@ -328,6 +329,7 @@ class _Reuse:
         self.static = None
         self.checks = []
         self.dyn_fractions = []
+        self.pilot_raw = {}  # the noise pilot's pairs at t = 0 as rendered (pilot_budget's keep_raw)
 
     def budget_mask(self):
         """The pixels the dynamic region's budget is measured on: those dynamic at t = 0, or every pixel when
@@ -352,13 +354,26 @@ class _Reuse:
             out.update(spp=int(scene.render["spp"]), given=True)
         return out
 
+    def _pilot_frame(self, rnd, spp: int, seeds):
+        """The static frame made of the noise pilot's pair at ``spp`` (rendered again with its ``seeds`` when the
+        pilot did not keep it: the same two renders)."""
+        from .reuse import StaticFrame
+        got = self.pilot_raw.get(int(spp))
+        if got is not None and got[0] == [int(s) for s in seeds]:
+            renders = (got[1], got[2])
+        else:
+            renders = tuple(rnd.render_raw(0.0, int(s), int(spp)) for s in seeds)
+        return StaticFrame(rnd, spp, seeds, ~self.dynamic_t0, renders=renders)
+
     def start(self, budget: dict, var_floor, rnd, folder) -> None:
-        """Render the static frame (seeds from the render seed and the attempt, so a resumed render makes the same
-        one). With ``spp: auto`` its own pair measures its pixels' ratio (:func:`.reuse.static_ratio`); outside
-        ``[BAND[0], STATIC_ACCEPT]`` x the target it is rendered again at more or fewer samples
-        (:func:`.reuse.static_retry_spp`), at most :data:`.reuse.STATIC_ATTEMPTS` renders in all, and the one in
-        the band (else nearest the target without being above it) is kept. The count and attempt kept are saved in
-        the render state: a resumed render renders that frame directly."""
+        """Make the static frame. With ``spp: auto`` it is first the noise pilot's pair at its highest count (two
+        independent renders at t = 0, made already), kept when its measured ratio (:func:`.reuse.static_ratio`)
+        is not above ``STATIC_ACCEPT`` x the target: no render and no kernel of its own. Else it is rendered (seeds
+        from the render seed and the attempt, so a resumed render makes the same one) and its own pair measures its
+        pixels' ratio; outside ``[BAND[0], STATIC_ACCEPT]`` x the target it is rendered again at more or fewer
+        samples (:func:`.reuse.static_retry_spp`), at most :data:`.reuse.STATIC_ATTEMPTS` renders in all, and the
+        one in the band (else nearest the target without being above it) is kept. What was kept (count, attempt or
+        the pilot's pair and seeds) is saved in the render state: a resumed render makes that frame directly."""
         if not self.on:
             return
         from .noise import BAND
@@ -369,11 +384,24 @@ class _Reuse:
         kept = folder.state.get("static_frame")
         if kept is None and folder.n_resumed:  # a render state without the kept frame: its frames were made with
             kept = {"spp": int(st["spp"]), "attempt": 0}  # the budget's count, first attempt
-        spp, attempt = (int(kept["spp"]), int(kept["attempt"])) if kept else (int(st["spp"]), 0)
         target = float(ncfg["target_ratio"])
         lo, hi = BAND[0] * target, STATIC_ACCEPT * target
         W, dark = int(ncfg["window_intervals"]), dark_current_mean_e(scene.profile)
         self.measured, made = [], {}
+        auto = scene.render["spp"] == "auto"
+        if (kept and kept.get("source") == "pilot") or (not kept and auto and self.pilot_raw):
+            n_p = int(kept["spp"]) if kept else max(self.pilot_raw)
+            frame = self._pilot_frame(rnd, n_p, kept["seeds"] if kept else self.pilot_raw[n_p][0])
+            ratio = static_ratio(frame, rnd, W, dark)
+            self.measured.append({"spp": n_p, "attempt": None, "source": "pilot", "ratio": ratio})
+            if kept or (np.isfinite(ratio) and ratio <= hi):  # below the band too: it costs nothing
+                self._keep(frame, {"spp": n_p, "attempt": None, "source": "pilot", "seeds": frame.seeds}, rnd,
+                           folder, var_floor)
+                return
+        spp, attempt = (int(kept["spp"]), int(kept["attempt"])) if kept else (int(st["spp"]), 0)
+        if self.measured and spp <= self.measured[0]["spp"]:  # the pilot's pair, at more samples, missed above
+            spp = static_retry_spp([(m["spp"], m["ratio"]) for m in self.measured], target, int(st["max_spp"]),
+                                   rnd.effective_spp) or spp
         while True:
             n = len(rnd.launch_counts(spp))
             # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
@@ -381,7 +409,7 @@ class _Reuse:
                 2 * n, np.uint32)
             made[attempt] = StaticFrame(rnd, spp, seeds, ~self.dynamic_t0)
             ratio = static_ratio(made[attempt], rnd, W, dark)
-            self.measured.append({"spp": int(spp), "attempt": attempt, "ratio": ratio})
+            self.measured.append({"spp": int(spp), "attempt": attempt, "source": "render", "ratio": ratio})
             if kept or scene.render["spp"] != "auto" or not np.isfinite(ratio) or lo <= ratio <= hi \
                     or attempt + 1 >= STATIC_ATTEMPTS:
                 break
@@ -391,11 +419,16 @@ class _Reuse:
                 break
             spp, attempt = nxt, attempt + 1
         if not kept:  # the attempt kept: in the band, else the one nearest the target that is not above it
-            ok = [m for m in self.measured if np.isfinite(m["ratio"]) and m["ratio"] <= hi]
-            best = min(ok, key=lambda m: abs(m["ratio"] - target)) if ok else self.measured[-1]
+            rendered = [m for m in self.measured if m["source"] == "render"]
+            ok = [m for m in rendered if np.isfinite(m["ratio"]) and m["ratio"] <= hi]
+            best = min(ok, key=lambda m: abs(m["ratio"] - target)) if ok else rendered[-1]
             spp, attempt = best["spp"], best["attempt"]
-        self.static = made[attempt]
-        folder.state["static_frame"] = {"spp": int(spp), "attempt": int(attempt)}
+        self._keep(made[attempt], {"spp": int(spp), "attempt": int(attempt), "source": "render"}, rnd, folder,
+                   var_floor)
+
+    def _keep(self, frame, state: dict, rnd, folder, var_floor) -> None:
+        self.static = frame
+        folder.state["static_frame"] = state
         folder.save_state()
         self.rnd = rnd
         self._floor_raw = var_floor / rnd._factors[0] ** 2  # one keyframe's variance [raw Phi units^2], smoothed
@@ -420,7 +453,9 @@ class _Reuse:
         if warn:
             log(f"render: warning: {warn}")
         st = self.static
-        return {"applied": True, "static_spp": st.spp, "static_seeds": st.seeds, "static_measured": self.measured,
+        return {"applied": True, "static_spp": st.spp, "static_seeds": st.seeds,
+                "static_source": (self.measured[-1]["source"] if self.measured else "render"),
+                "static_measured": self.measured,
                 "static_pixels": int(st.valid.sum()),
                 "dynamic_fraction": {"t0": float(self.dynamic_t0.mean()),
                                      "mean": float(np.mean(self.dyn_fractions)) if self.dyn_fractions else None,

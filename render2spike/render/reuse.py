@@ -9,7 +9,9 @@ into two regions:
   rendered at the keyframe, at the dynamic region's spp, with the frozen launch's pixel-list launch
   (:meth:`.frozen.FrozenLaunch.launch_pixels`);
 * **static** pixels take their value from the *static frame*: one render at t = 0, made as two independent
-  renders at the static spp and averaged (their difference gives each pixel's variance).
+  renders at the static spp and averaged (their difference gives each pixel's variance). The noise pilot
+  renders such pairs of the whole frame at t = 0 anyway; its pair at its highest count is the static frame
+  when it meets the static pixels' budget (no render and no kernel of its own), as it does on the bundled scenes.
 
 Coverage test (:class:`Coverage`, per keyframe)
 -----------------------------------------------
@@ -31,9 +33,11 @@ pixel (the errors of ``K`` keyframes average), but ``v`` itself for a static one
 same error). The dynamic region's spp comes from the pilot pairs (:func:`.noise.pilot_budget`) with the
 means taken over the dynamic pixels at t = 0; the static frame's from the same pilot pairs over the static
 pixels, with ``K = 1`` and the pair's average (variance halved), no more than :data:`STATIC_MAX_FACTOR` x
-``max_spp``. The static frame's own two renders then measure its ratio (:func:`static_ratio`); outside the band it
-is rendered again at another count (:func:`static_retry_spp`, at most :data:`STATIC_ATTEMPTS` renders), because
-the pilot's levels are interpolated to its count and ``multijitter`` is not smooth in the count.
+``max_spp``. The pilot's own pair at its highest count is measured first (:func:`static_ratio`) and taken when it
+is not above the band. Else the static frame is rendered at the budget's count, its own two renders measure its
+ratio, and outside the band it is rendered again at another count (:func:`static_retry_spp`, at most
+:data:`STATIC_ATTEMPTS` renders), because the pilot's levels are interpolated to its count and ``multijitter`` is
+not smooth in the count.
 
 A static pixel's error is one pattern for the whole clip: each window of ``W`` intervals meets the target, but
 averages over many windows (a rate over the whole clip) do not shrink it as they shrink the errors of
@@ -70,7 +74,7 @@ STATIC_ATTEMPTS = 4
 STATIC_CHECK_SIGMAS = 6.0
 #: part of the frames' scene hash when reuse is on (:func:`.launch.settings_of`): a change to the coverage
 #: test, the static frame or the budget split must bump it
-REUSE_VERSION = 1
+REUSE_VERSION = 2
 
 
 def reuse_obstacle(scene, launch: str) -> str | None:
@@ -255,11 +259,16 @@ def static_retry_spp(measured: list[tuple[int, float]], target_ratio: float, cap
 
 class StaticFrame:
     """The static frame: raw channels (H, W) averaged over two renders at ``spp``, their per-pixel variance
-    (raw Phi units^2, of the average) and which pixels hold a static value (``valid``: not dynamic at t = 0)."""
+    (raw Phi units^2, of the average) and which pixels hold a static value (``valid``: not dynamic at t = 0).
+    ``renders``: the two renders ``((Phi_raw, E_raw), (Phi_raw, E_raw))`` at t = 0 when they exist already (a pair
+    of the noise pilot's, made with ``seeds``); else they are rendered here."""
 
-    def __init__(self, rnd, spp: int, seeds, valid: np.ndarray):
-        a = rnd.render_exact(0.0, seeds[:len(rnd.launch_counts(spp))], spp)
-        b = rnd.render_exact(0.0, seeds[len(rnd.launch_counts(spp)):], spp)
+    def __init__(self, rnd, spp: int, seeds, valid: np.ndarray, renders=None):
+        if renders is None:
+            a = rnd.render_exact(0.0, seeds[:len(rnd.launch_counts(spp))], spp)
+            b = rnd.render_exact(0.0, seeds[len(rnd.launch_counts(spp)):], spp)
+        else:
+            a, b = renders
         self.spp = int(spp)
         self.seeds = [int(s) for s in seeds]
         self.raw_p = 0.5 * (a[0] + b[0])

@@ -636,3 +636,26 @@ def test_a_scene_loads_its_objects_in_one_order_so_its_kernels_hit_the_cache(wri
         seen.append(ids)
         del r, mi
     assert all(s == seen[0] for s in seen), seen
+
+
+def test_a_frame_and_a_pixel_list_at_one_count_run_one_path_tracer_kernel(write_scene):
+    # A first run compiles each path-tracer kernel (about 1 s each on 2 cores); the whole-frame launch goes through
+    # the pixel list's gather, so the pilot's frames and the keyframes' pixel lists at one count share a kernel.
+    # The whole frame's values are those of its sample index alone (the golden frames did not change)
+    import drjit as dr
+    from render2spike.render.renderer import SceneRenderer
+    _collect()
+    r = SceneRenderer(_scene(write_scene, pan=False), launch="frozen")
+    fl = r._frozen
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # read = cleared
+        fl.channels(fl.launch(5, 16, r._cam_m))
+        frame = dr.kernel_history()
+        fl.pixel_values(fl.launch_pixels(5, 16, r._cam_m, np.arange(0, fl.height * fl.width, 3)))
+        listed = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    tracer = lambda hist: {str(h["hash"]) for h in hist if h.get("operation_count", 0) > 1000}  # noqa: E731
+    assert len(tracer(frame)) == 1 and tracer(frame) == tracer(listed), (tracer(frame), tracer(listed))

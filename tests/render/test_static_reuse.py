@@ -46,7 +46,8 @@ def test_reuse_applies_only_to_a_still_camera_with_movers_on_the_frozen_launch(w
 
 def test_the_frames_hash_says_whether_a_static_frame_is_reused(write_scene):
     from render2spike.render.launch import settings_of
-    assert settings_of(_scene(write_scene), "llvm_ad_spectral", "frozen").get("static_reuse") == 1
+    from render2spike.render.reuse import REUSE_VERSION
+    assert settings_of(_scene(write_scene), "llvm_ad_spectral", "frozen").get("static_reuse") == REUSE_VERSION
     off = _scene(write_scene, render=dict(BASE["render"], static_reuse=False))
     assert "static_reuse" not in settings_of(off, "llvm_ad_spectral", "frozen")
 
@@ -214,14 +215,39 @@ def test_a_killed_and_resumed_render_with_reuse_writes_the_same_frames(tmp_path,
                                                               noise={"max_spp": 16}))  # a cheap budget
     whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
     assert whole.manifest["static_reuse"]["applied"]
+    assert whole.manifest["static_reuse"]["static_source"] == "pilot"  # made again from the pilot's seeds
     res = _killed_after_two_and_resumed(scene, tmp_path / "b", monkeypatch)
     assert res.n_rendered == res.n_frames - 2
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
 
 
+def test_the_static_frame_is_the_pilots_pair_when_that_meets_its_budget(tmp_path, write_scene, monkeypatch):
+    """The noise pilot renders pairs of the whole frame at t = 0; its pair at its highest count is the static frame
+    when its measured ratio is not above the band: nothing is rendered for it (no launch, no kernel of its own)."""
+    from render2spike.render import reuse as reuse_mod
+    from render2spike.render.job import render_scene
+    made = []
+    orig = reuse_mod.StaticFrame.__init__
+
+    def counted(self, rnd, spp, seeds, valid, renders=None):
+        made.append(renders is None)
+        orig(self, rnd, spp, seeds, valid, renders)
+    monkeypatch.setattr(reuse_mod.StaticFrame, "__init__", counted)
+    scene = _scene(write_scene, duration_s=0.003, render=dict(BASE["render"], keyframe_rate_hz=1000,
+                                                              adaptive={"enabled": False}, noise={"max_spp": 16}))
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    sr, budget = res.manifest["static_reuse"], res.manifest["noise_budget"]
+    assert made == [False] and sr["static_source"] == "pilot"
+    assert sr["static_spp"] == max(budget["pilot"]["spp"])
+    (m,) = sr["static_measured"]
+    assert m["source"] == "pilot" and m["ratio"] <= 1.1 * 0.2
+    assert len(sr["static_seeds"]) == 2  # the pair's (a resumed render makes it again from them)
+
+
 def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_kept(tmp_path, write_scene,
                                                                                      monkeypatch):
-    """A static count far below the need (1 spp, forced): its own pair measures it above the band, so the frame is
+    """Without the pilot's pairs (which would be the static frame), a static count far below the need (1 spp,
+    forced): its own pair measures it above the band, so the frame is
     rendered again at more samples until its ratio is in the band; the attempts are in the manifest, and a render
     killed after two keyframes and resumed makes the same static frame (its count and attempt kept in the state),
     so the same frames."""
@@ -235,6 +261,9 @@ def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_ke
         return dict(orig_spp(*args, **kw), spp=1)
 
     monkeypatch.setattr(reuse_mod, "static_spp", too_few)
+    import render2spike.render.job as job_mod
+    orig_pilot = job_mod.pilot_budget
+    monkeypatch.setattr(job_mod, "pilot_budget", lambda *a, **kw: orig_pilot(*a, **dict(kw, keep_raw=None)))
     scene = _scene(write_scene, duration_s=0.004, render=dict(BASE["render"], keyframe_rate_hz=1000,
                                                               adaptive={"enabled": False},
                                                               noise={"max_spp": 16}))  # static frame <= 128 spp
