@@ -25,12 +25,15 @@
 #      the numba kernels, on cuda), then benchmarks/spike_stage.py --device cuda on the full sensor with the numba
 #      thread-scaling rows (RENDER2SPIKE_THREADS 1 2 4 8 16; SPIKE_ARGS overrides its options), in what is left of
 #      SPIKE_T (report in OUT_DIR/spike/spike_stage.md).
+#  10. with BLOCK_T=seconds (0 or unset: skipped), benchmarks/keyframe_blocks.py on room_pan (only the camera moves):
+#      a keyframe's time in a block of 16 against a launch of its own and a bare mi.render, on the scene's window and
+#      on the full sensor, at 16 and 121 spp (reports in OUT_DIR/blocks/window and OUT_DIR/blocks/full).
 # REPRO_SPP="64 256 1024" also runs benchmarks/repro_check.py (two runs of one render compared value by value,
 # the default launch) at those spp. BENCH_LIMIT_S=0 skips step 3; DEMO_LAUNCHES="film frozen" runs step 4 once per launch (default: auto
 # only, the README's command as it stands; its log is demo.txt, another launch's demo_LAUNCH.txt).
 # Usage: [TESTS="pytest paths"] [BENCH_ARGS="render_gpu.py options"] [FROZEN_T=120] [FROZEN_ARGS="..."] \
 #        [DEMO_LAUNCHES="film frozen"] [LAUNCH_T=90] [LAUNCH_SCENES="room_pan ..."] [DATASET_T=120] [GOAL_T=120] \
-#        [SPIKE_T=300] [SPIKE_ARGS="spike_stage.py options"] \
+#        [SPIKE_T=300] [SPIKE_ARGS="spike_stage.py options"] [BLOCK_T=120] \
 #        bash benchmarks/gpu_check.sh OUT_DIR [TEST_TIMEOUT_S] [BENCH_LIMIT_S] [DEMO_TIMEOUT_S (0: no main job)]
 # Making the carried file (here, on a machine with network):
 #   bash benchmarks/make_gpu_site.sh (downloads the cp312 wheels, trims them, writes .whl/site.tar.xz)
@@ -154,6 +157,18 @@ if [ "$left" -gt 20 ]; then
 else
   stamp "spike stage benchmark: no time left"; fail=1
 fi
+}
+[ "${BLOCK_T:-0}" -gt 0 ] && {
+bt0=$(date +%s)
+for size in window full; do
+  left=$(( BLOCK_T - ($(date +%s) - bt0) ))
+  [ "$left" -gt 10 ] || { stamp "keyframe blocks, $size: no time left"; break; }
+  stamp "keyframe blocks (benchmarks/keyframe_blocks.py, $size, timeout $left s)"
+  timeout "$left" python3 benchmarks/keyframe_blocks.py --scene room_pan $([ $size = full ] && echo --full) \
+    --out "$OUT/blocks/$size" >> "$OUT/blocks.txt" 2>&1
+  rc=$?; [ $rc -eq 0 ] || fail=1
+  stamp "keyframe blocks, $size: exit $rc"
+done
 }
 [ -n "${REPRO_SPP:-}" ] && {
 stamp "two runs of the same render (benchmarks/repro_check.py, spp ${REPRO_SPP}, default launch)"

@@ -48,6 +48,9 @@ what the camera and the ``specfilm`` did, in Dr.Jit, around the scene integrator
    whose motion changes its shape (a scale that changes over time), cannot move that way: ``auto``
    takes the film launch for its scene (:func:`frozen_obstacle`).
 
+5. **Keyframes in blocks.** Where only the camera moves (:func:`block_obstacle`), :meth:`FrozenLaunch.launch_block`
+   renders several keyframes in one launch: the poses are one more input, gathered per sample by its frame.
+
 The result is the pair of raw channels (``Phi``, ``E``) that the film launch gives, in the same
 units, so :mod:`.photometry` applies unchanged. :class:`FrozenLaunch` implements the launch interface
 (:class:`.launch.Launch`); ``launch="auto"`` takes it on Mitsuba's LLVM and CUDA variants
@@ -76,6 +79,10 @@ ESTIMATOR_VERSION = 3
 #: (:meth:`render2spike.render.renderer.SceneRenderer.launch_counts`). A constant, not the machine's memory:
 #: the split is part of the estimator, so frames do not depend on where they were rendered
 MAX_SAMPLES_PER_LAUNCH = 1 << 26
+#: the most keyframes one block launch renders (:meth:`FrozenLaunch.launch_block`), where only the camera moves
+#: (:func:`block_obstacle`); fewer where they would hold more than :data:`MAX_SAMPLES_PER_LAUNCH` samples. Part of
+#: the frames' scene hash there (:func:`.launch.settings_of`): which keyframes share a launch decides their samples
+BLOCK_KEYFRAMES = 16
 #: a launch of a list of pixels (:meth:`FrozenLaunch.launch_pixels`) pads the list (:func:`padded_pixels`) to a
 #: multiple of this many pixels at least, and of 1/PIXEL_STEPS of the list's power of two: the padded length is part
 #: of what is recorded, so lists of nearly equal length share one recording, and the padding (whose samples are
@@ -159,6 +166,24 @@ def frozen_obstacle(scene) -> str | None:
         if bad:
             return (f"{where} is a moving mesh whose motion changes its shape (e.g. at t = {bad[0]:.6g} s: a "
                     "scale that changes over time), which the frozen launch cannot move as an instance")
+    return None
+
+
+def block_obstacle(scene, launch: str) -> str | None:
+    """Why ``scene`` rendered with ``launch`` does not render its base keyframes in blocks
+    (:meth:`FrozenLaunch.launch_block`), or None (it does)."""
+    from .builder import camera_motion, object_motion
+    if launch != "frozen":
+        return "the film launch renders one frame a launch"
+    if scene.render.get("keyframe_blocks") is False:
+        return "render.keyframe_blocks is false in the scene"
+    movers = [obj["name"] for i, obj in enumerate(scene.data["objects"])
+              if not object_motion(obj, f"objects.{i}.").is_static]
+    if movers:
+        return (f"object '{movers[0]}' moves: Mitsuba holds one transform a shape in a launch, so only the camera's "
+                "pose can differ between the frames of one launch")
+    if camera_motion(scene.camera).is_static:
+        return "nothing moves: every keyframe is the static frame"
     return None
 
 
@@ -333,6 +358,7 @@ class FrozenLaunch:
         self.frozen = bool(frozen)
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
         self._fn_px = dr.freeze(self._launch_px) if self.frozen else self._launch_px
+        self._fn_block = dr.freeze(self._launch_block) if self.frozen else self._launch_block
         self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
         self._px_lengths = {}  # spp -> the padded pixel-list lengths recorded at it
 
@@ -434,6 +460,44 @@ class FrozenLaunch:
         out = self._fn_px(self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx), padded)
         return spp, n_pix, out
 
+    def block_size(self, spp: int, most: int = 0) -> int:
+        """How many whole frames at ``spp`` one :meth:`launch_block` takes: at most ``most`` (default
+        :data:`BLOCK_KEYFRAMES`) and :data:`MAX_SAMPLES_PER_LAUNCH` samples; 0 or 1: no block."""
+        most = int(most) or BLOCK_KEYFRAMES
+        return int(min(most, MAX_SAMPLES_PER_LAUNCH // max(1, self.height * self.width * self.sample_count(spp))))
+
+    def launch_block(self, seed: int, spp: int, poses):
+        """Start one render of ``len(poses)`` whole frames, one per camera pose (4 x 4 ``to_world`` matrices), at
+        ``spp`` samples per pixel each; -> the launched block for :meth:`block_channels`, not yet waited for.
+
+        One launch for many keyframes of a scene in which only the camera moves: the poses are an input of the
+        recording, as one pose is of :meth:`launch`, and each sample takes its frame's pose. The estimator is
+        :meth:`launch`'s (rays, wavelengths, per-pixel sums of ``spp`` samples); the sampler is seeded once for
+        the block, and frame ``f``'s samples are the ``f``-th run of ``H W spp`` lanes, so each frame is another
+        Monte Carlo estimate of the same quantity as a frame of its own launch (tested), not the same bits. At most
+        :meth:`block_size` frames; ``spp`` must be a count the sampler takes exactly."""
+        mi = self.mi
+        k = len(poses)
+        spp = self.sample_count(spp)
+        if k < 1 or k * self.height * self.width * spp > MAX_SAMPLES_PER_LAUNCH:
+            raise ValueError(f"a block of {k} frames at {spp} spp: 1 to {self.block_size(spp)} frames (block_size)")
+        ms = mi.Float([float(x) for p in poses for x in np.asarray(p, np.float32).reshape(16)])
+        key = ("block", spp, k)
+        if self.frozen and key not in self._seen_spp:
+            import gc
+            gc.collect()
+            self._seen_spp.add(key)
+        seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
+        return spp, k, self._fn_block(self.scene, seed_v, ms, spp, self._tables, self._quantiles, k)
+
+    def block_channels(self, launched) -> list[dict[str, np.ndarray]]:
+        """``[{channel: float64 (H, W)}]``, one per frame of a :meth:`launch_block`, in the order of its poses
+        (waits for it)."""
+        spp, k, out = launched
+        h, w = self.height, self.width
+        arrays = [np.asarray(x, dtype=np.float64).reshape(k, h, w) / spp for x in out]
+        return [{c: a[f] for c, a in zip(self.names, arrays)} for f in range(k)]
+
     def pixel_length(self, n_pix: int, spp: int) -> int:
         """The padded length of a list of ``n_pix`` pixels at ``spp``: the shortest length already recorded at
         ``spp`` that holds it and is at most :data:`PIXEL_SLACK` longer; else, the first time at ``spp``,
@@ -464,11 +528,23 @@ class FrozenLaunch:
         mi, dr = self.mi, self.dr
         n = int(n_pix) * spp
         idx = dr.gather(mi.UInt32, pixels, dr.arange(mi.UInt32, n) // spp)  # spp consecutive samples a pixel
-        return self._trace(scene, seed, m, spp, tables, quantiles, idx, n)
+        return self._trace(scene, seed, self.pose(m), spp, tables, quantiles, idx, n)
 
-    def _trace(self, scene, seed, m, spp, tables, quantiles, idx, n):
+    def _launch_block(self, scene, seed, ms, spp, tables, quantiles, k):
+        mi, dr = self.mi, self.dr
+        per = self.height * self.width * spp  # one frame's samples; frame f's are the f-th run of them
+        n = int(k) * per
+        lane = dr.arange(mi.UInt32, n)
+        f = lane // per
+        idx = (lane - f * per) // spp  # the sample's pixel in its frame: spp consecutive samples each
+        # each sample's camera pose: its frame's 16 values, gathered (the lanes of one packet mostly share a frame)
+        pose = mi.Transform4f(mi.Matrix4f(*[dr.gather(mi.Float, ms, f * 16 + i) for i in range(16)]))
+        return self._trace(scene, seed, pose, spp, tables, quantiles, idx, n)
+
+    def _trace(self, scene, seed, pose, spp, tables, quantiles, idx, n):
         """The samples of pixels ``idx`` (one entry a sample, ``spp`` consecutive ones a pixel; ``n`` of them)
-        traced and summed per pixel: -> per-channel sums."""
+        traced from the camera at ``pose`` (a ``Transform4f``, one or one per sample) and summed per pixel (per
+        run of ``spp`` samples): -> per-channel sums."""
         mi, dr = self.mi, self.dr
         h, w = self.height, self.width
         sampler = self._sampler.clone()
@@ -480,7 +556,7 @@ class FrozenLaunch:
         pos = mi.Vector2f(mi.Float(px), mi.Float(py)) + sampler.next_2d()  # Mitsuba's order: position first
         u = sampler.next_1d()  # ... then the wavelength
         lam, inv_p = self.wavelengths(u, quantiles)
-        o, d, maxt = self.primary_rays(self.pose(m), mi.Vector2f(pos.x * (1.0 / w), pos.y * (1.0 / h)))
+        o, d, maxt = self.primary_rays(pose, mi.Vector2f(pos.x * (1.0 / w), pos.y * (1.0 / h)))
         ray = mi.Ray3f(o, d, maxt, 0.0, mi.UnpolarizedSpectrum(*lam))
         L, _, _ = self._integrator.sample(scene, sampler, mi.RayDifferential3f(ray), None, True)
         accs = []

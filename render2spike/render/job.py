@@ -224,6 +224,18 @@ class _Keyframes:
                                    "variant": rnd.variant, "launch": launch})
         self.n_rendered = 0
         self.tiles = []  # the verified keyframes' noise.tile_ratios (this run's)
+        # base keyframes in blocks of block_k, one launch each (frozen.block_obstacle: only the camera moves)
+        from .frozen import block_obstacle
+        self.block_why_not = block_obstacle(scene, launch)
+        self.block_k = 0
+        if self.block_why_not is None:
+            self.block_k = rnd.frame_launch.block_size(self.spp_levels[0])
+            if self.block_k < 2 or len(rnd.launch_counts(self.spp_levels[0])) != 1:
+                self.block_k = 0
+                self.block_why_not = (f"two frames at {self.spp_levels[0]} spp would take more than one launch's "
+                                      "samples")
+        self._block = {}  # tick -> (raw channels, block seed, block index, place in it) of the block rendered last
+        self.n_blocks = 0
 
     def at(self, tick: int):
         """Phi (float64) of the keyframe at ``tick``: the folder's, else :meth:`render`'s."""
@@ -238,7 +250,9 @@ class _Keyframes:
         verify = tick % (VERIFY_EVERY * self.source.grid.step) == 0
         seed = int(scene.render["seed"])
         spp = self.spp_levels[self.source.level(tick)]  # a refined keyframe's own (noise.level_k_factors)
-        if self.reuse.on:
+        if self.block_k and self.source.level(tick) == 0:
+            f = self._block_frame(tick, t_s, seed, spp, verify)
+        elif self.reuse.on:
             f = self.reuse.frame(t_s, seed, spp, verify)
             if tick == self.source.grid.n_ticks or (verify and tick > 0):
                 self.reuse.check(t_s, seed, spp, f)
@@ -262,11 +276,49 @@ class _Keyframes:
                  "variant": rnd.variant, "launch": self.launch, "scene_hash": self.scene_hash,
                  "target_lux": float(scene.illuminance_lux),
                  "seeds": f["seeds"], "made_by": self.made_by, "scene": scene.name}
+        if "block" in f:  # [block index, place in it]: the frame's samples are that run of the block's launch
+            attrs["keyframe_block"] = f["block"]
         # the float64 arrays are handed over as they are (nothing here changes them later): the writer thread
         # rounds them to the file's float32, off the render loop
         self.folder.write(tick, t_s, f["phi"], f["lux"], ratio, attrs)
         self.n_rendered += 1
         return f["phi"]
+
+    def _block_frame(self, tick: int, t_s: float, seed: int, spp: int, verify: bool) -> dict:
+        """The base keyframe at ``tick`` from its block: base ticks ``b K step ... ((b + 1) K - 1) step`` (``K`` =
+        ``block_k``, ``step`` the base spacing in ticks) rendered in one launch, seeded by the render seed and
+        ``b``, so a resumed render makes the same block and takes the frames it lacks. The dict of
+        :meth:`.renderer.SceneRenderer.render_frame`; a verified keyframe's second render is its own launch, with
+        the seeds ``render_frame`` gives it."""
+        from .photometry import apply_factors
+        from .sampling import frame_seeds
+        rnd, grid = self.rnd, self.source.grid
+        if tick not in self._block:
+            b = tick // (grid.step * self.block_k)
+            ticks = [t for t in range(b * self.block_k * grid.step, (b + 1) * self.block_k * grid.step, grid.step)
+                     if t <= grid.n_ticks]
+            # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
+            bseed = int(np.random.SeedSequence([int(seed), 0xB10C, int(b)]).generate_state(1, np.uint32)[0])
+            raws = rnd.render_block([self.source.time(t) for t in ticks], bseed, spp)
+            self._block = {t: (raw, bseed, b, i) for i, (t, raw) in enumerate(zip(ticks, raws))}
+            self.n_blocks += 1
+        (raw_p, raw_e), bseed, b, place = self._block.pop(tick)
+        phi, lux = apply_factors(raw_p, raw_e, rnd._factors)
+        out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": [bseed], "spp": int(spp), "phi_var": None,
+               "block": [int(b), int(place)]}
+        if verify:
+            n = len(rnd.launch_counts(spp))
+            sb = frame_seeds(seed, t_s, 2 * n)[n:]
+            pb, _ = rnd.render_exact(t_s, sb, spp)
+            out["phi_var"] = (raw_p - pb) ** 2 / 2.0 * rnd._factors[0] ** 2
+            out["variance_seeds"] = list(sb)
+        return out
+
+    def block_record(self) -> dict:
+        """The manifest's ``keyframe_blocks``."""
+        if not self.block_k:
+            return {"applied": False, "why_not": self.block_why_not}
+        return {"applied": True, "keyframes_per_block": self.block_k, "n_blocks_this_run": self.n_blocks}
 
 
 def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, frames: _Keyframes, ticks, ratios,
@@ -304,6 +356,7 @@ def _manifest(scene: Scene, rnd, folder: FramesFolder, source: FrameSource, fram
                                "tiles": tile_summary(frames.tiles, float(ncfg["target_ratio"]))},
         "temporal_sampling": source.record(ticks),
         "static_reuse": frames.reuse.record(log),
+        "keyframe_blocks": frames.block_record(),
         "n_rendered_this_run": frames.n_rendered,
         "n_resumed": folder.n_resumed,
         "render_seconds": seconds,
@@ -472,4 +525,6 @@ def spp_text(manifest: dict, spp: int) -> str:
         frac = (sr.get("dynamic_fraction") or {}).get("mean")  # None when this run rendered no keyframe
         where = "the pixels" if frac is None else f"the {100 * frac:.0f} % of pixels"
         text += f" on {where} something moving covers, the rest from one static frame at {sr['static_spp']} spp"
+        if sr.get("static_source") == "pilot":
+            text += " (the noise pilot's pair)"
     return text

@@ -301,6 +301,19 @@ class SceneRenderer:
             kept, self._kept = self._kept, None
             self._reusable = kept
 
+    def render_block(self, times_s, seed: int, spp: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Raw channels (Phi_raw, E_raw), float64 (H, W), of the frames at ``times_s`` in one launch of the frozen
+        launch (:meth:`.frozen.FrozenLaunch.launch_block`): a scene in which only the camera moves
+        (:func:`.frozen.block_obstacle`), ``spp`` a count the sampler takes exactly, at most
+        :meth:`.frozen.FrozenLaunch.block_size` frames."""
+        poses = []
+        for t in times_s:
+            self.set_time(float(t))
+            poses.append(np.array(self._cam_m, np.float64))
+        self.n_launches += 1
+        fl = self.frame_launch
+        return [(c["Phi"], c["E"]) for c in fl.block_channels(fl.launch_block(int(seed), int(spp), poses))]
+
     def effective_spp(self, spp: int) -> int:
         """The sample count the (stratified) sampler really takes for a request of ``spp`` (rounds up)."""
         cache = self.__dict__.setdefault("_spp_cache", {})

@@ -242,6 +242,8 @@ def test_the_static_frame_is_the_pilots_pair_when_that_meets_its_budget(tmp_path
     (m,) = sr["static_measured"]
     assert m["source"] == "pilot" and m["ratio"] <= 1.1 * 0.2
     assert len(sr["static_seeds"]) == 2  # the pair's (a resumed render makes it again from them)
+    from render2spike.render.job import spp_text
+    assert spp_text(res.manifest, res.spp).endswith(f"one static frame at {sr['static_spp']} spp (the noise pilot's pair)")
 
 
 def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_kept(tmp_path, write_scene,
