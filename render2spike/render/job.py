@@ -288,8 +288,9 @@ class _Keyframes:
         """The base keyframe at ``tick`` from its block: base ticks ``b K step ... ((b + 1) K - 1) step`` (``K`` =
         ``block_k``, ``step`` the base spacing in ticks) rendered in one launch, seeded by the render seed and
         ``b``, so a resumed render makes the same block and takes the frames it lacks. The dict of
-        :meth:`.renderer.SceneRenderer.render_frame`; a verified keyframe's second render is its own launch, with
-        the seeds ``render_frame`` gives it."""
+        :meth:`.renderer.SceneRenderer.render_frame`; a verified keyframe's second render is the one
+        ``render_frame`` takes: a kept pilot render at its time and spp, else a launch of its own with the seeds
+        ``render_frame`` gives it."""
         from .photometry import apply_factors
         from .sampling import frame_seeds
         rnd, grid = self.rnd, self.source.grid
@@ -307,9 +308,13 @@ class _Keyframes:
         out = {"time_s": float(t_s), "phi": phi, "lux": lux, "seeds": [bseed], "spp": int(spp), "phi_var": None,
                "block": [int(b), int(place)]}
         if verify:
-            n = len(rnd.launch_counts(spp))
-            sb = frame_seeds(seed, t_s, 2 * n)[n:]
-            pb, _ = rnd.render_exact(t_s, sb, spp)
+            reused = rnd._reused_render(t_s, spp, [bseed])  # a kept pilot render, as render_frame takes it
+            if reused is not None:
+                sb, pb = [reused[0]], reused[1]
+            else:
+                n = len(rnd.launch_counts(spp))
+                sb = frame_seeds(seed, t_s, 2 * n)[n:]
+                pb, _ = rnd.render_exact(t_s, sb, spp)
             out["phi_var"] = (raw_p - pb) ** 2 / 2.0 * rnd._factors[0] ** 2
             out["variance_seeds"] = list(sb)
         return out
