@@ -485,6 +485,7 @@ class _Reuse:
                    var_floor)
 
     def _keep(self, frame, state: dict, rnd, folder, var_floor) -> None:
+        self.pilot_raw = {}  # (the pilot's renders are not needed after this)
         self.static = frame
         folder.state["static_frame"] = state
         folder.save_state()
