@@ -55,8 +55,9 @@ The result is the pair of raw channels (``Phi``, ``E``) that the film launch giv
 units, so :mod:`.photometry` applies unchanged. :class:`FrozenLaunch` implements the launch interface
 (:class:`.launch.Launch`); ``launch="auto"`` takes it on Mitsuba's LLVM and CUDA variants
 (:func:`.launch.resolve_launch`); the scalar variants, which cannot record, take the film launch.
-:class:`FrozenLaunch` keeps one frozen function; ``frozen=False`` runs the same function without
-freezing (the tests hold the two bitwise equal).
+:class:`FrozenLaunch` keeps three frozen functions (a whole frame, a list of pixels, a block of frames); a whole
+frame goes through the list's gather, so the two share a kernel at each sample count. ``frozen=False`` runs the
+same functions without freezing (the tests hold the two bitwise equal).
 """
 
 from __future__ import annotations
