@@ -523,7 +523,8 @@ class _Reuse:
 
 
 def spp_text(manifest: dict, spp: int) -> str:
-    """The frames' samples per pixel as the summary says them: by refinement level, and the static frame's."""
+    """The frames' samples per pixel as the summary says them: by refinement level, the static frame's, and how many
+    keyframes share a launch."""
     levels = manifest.get("spp_by_level") or [spp]
     text = f"{spp} spp" if len(set(levels)) == 1 else f"{' / '.join(map(str, levels))} spp by refinement level"
     sr = manifest.get("static_reuse") or {}
@@ -533,4 +534,7 @@ def spp_text(manifest: dict, spp: int) -> str:
         text += f" on {where} something moving covers, the rest from one static frame at {sr['static_spp']} spp"
         if sr.get("static_source") == "pilot":
             text += " (the noise pilot's pair)"
+    kb = manifest.get("keyframe_blocks") or {}
+    if kb.get("applied"):
+        text += f", base keyframes up to {kb['keyframes_per_block']} to a launch"
     return text

@@ -90,6 +90,8 @@ def test_a_camera_pan_renders_its_base_keyframes_in_blocks_and_resumes_the_same(
     whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
     kb = whole.manifest["keyframe_blocks"]
     assert kb == {"applied": True, "keyframes_per_block": 16, "n_blocks_this_run": 2}
+    from render2spike.render.job import spp_text
+    assert spp_text(whole.manifest, whole.spp) == "8 spp, base keyframes up to 16 to a launch"
     assert whole.n_frames == 21 and np.isfinite(whole.manifest["render_noise_ratio"]["mean"])  # tick 0 verified
     from sensor.io.frames import read_frames
     seq = read_frames(tmp_path / "a")
