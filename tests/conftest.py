@@ -7,8 +7,10 @@
 * ``cli``: runs ``render2spike ARGV`` in this process and returns its exit code,
   stdout and stderr. Tests of signals, kills, start-up or process-wide state
   (BLAS threads, Mitsuba variants) run real child processes instead.
-* ``rendered_run``: one tiny ``render2spike run`` made once per session, for the
-  tests that need some rendered frames (skipped where Mitsuba is missing).
+* ``rendered_run``: one tiny ``render2spike run`` made once per session (per worker
+  process), for the tests that need some rendered frames (skipped where Mitsuba is missing).
+* The suite runs in two worker processes, a test file to a process, where
+  pytest-xdist is installed (:func:`pytest_cmdline_main`); ``-n 0`` runs it here.
 * Every stochastic test uses a fixed seed; tolerances come from the statistics
   (binomial / Poisson standard errors at a stated number of sigmas).
 """
@@ -26,8 +28,36 @@ import pytest
 Z = 3.9
 
 
+#: worker processes the suite runs in when pytest-xdist is installed and ``-n`` is not given (at most the machine's
+#: cores); RENDER2SPIKE_TEST_WORKERS overrides it, 0 runs in this process
+TEST_WORKERS = 2
+
+
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False, help="run tests marked slow")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    """Run the suite in :data:`TEST_WORKERS` processes, a file to a process (``--dist loadfile``: a file's module
+    fixtures are made once), unless ``-n`` is given, pytest-xdist is missing, or a debugger or collection is asked
+    for. Called before pytest-xdist's own hook, which then starts the workers."""
+    if not config.pluginmanager.hasplugin("xdist") or hasattr(config, "workerinput"):
+        return
+    opt = config.option
+    if opt.numprocesses is not None or getattr(opt, "usepdb", False) or getattr(opt, "collectonly", False) \
+            or getattr(opt, "tx", None):
+        return
+    want = os.environ.get("RENDER2SPIKE_TEST_WORKERS", "").strip()
+    try:
+        n = int(want) if want else min(TEST_WORKERS, os.cpu_count() or 1)
+    except ValueError:
+        raise pytest.UsageError(f"RENDER2SPIKE_TEST_WORKERS={want!r}: expected a whole number of worker processes "
+                                "(0: run in this process)") from None
+    if n > 1:
+        opt.numprocesses = n
+        if opt.dist == "no":
+            opt.dist = "loadfile"
 
 
 def pytest_configure(config):
