@@ -426,7 +426,8 @@ class _Reuse:
     def start(self, budget: dict, var_floor, rnd, folder) -> None:
         """Make the static frame. With ``spp: auto`` it is first the noise pilot's pair at its highest count (two
         independent renders at t = 0, made already), kept when its measured ratio (:func:`.reuse.static_ratio`)
-        is not above ``STATIC_ACCEPT`` x the target: no render and no kernel of its own. Else it is rendered (seeds
+        is not above ``STATIC_ACCEPT`` x the target, or not defined (no light and no dark current in the static
+        pixels): no render and no kernel of its own. Else it is rendered (seeds
         from the render seed and the attempt, so a resumed render makes the same one) and its own pair measures its
         pixels' ratio; outside ``[BAND[0], STATIC_ACCEPT]`` x the target it is rendered again at more or fewer
         samples (:func:`.reuse.static_retry_spp`), at most :data:`.reuse.STATIC_ATTEMPTS` renders in all, and the
@@ -452,12 +453,15 @@ class _Reuse:
             frame = self._pilot_frame(rnd, n_p, kept["seeds"] if kept else self.pilot_raw[n_p][0])
             ratio = static_ratio(frame, rnd, W, dark)
             self.measured.append({"spp": n_p, "attempt": None, "source": "pilot", "ratio": ratio})
-            if kept or (np.isfinite(ratio) and ratio <= hi):  # below the band too: it costs nothing
+            # below the band too: it costs nothing; nan (no light and no dark current in the static pixels, or none
+            # of them): no count can miss a band there
+            if kept or not (np.isfinite(ratio) and ratio > hi):
                 self._keep(frame, {"spp": n_p, "attempt": None, "source": "pilot", "seeds": frame.seeds}, rnd,
                            folder, var_floor)
                 return
         spp, attempt = (int(kept["spp"]), int(kept["attempt"])) if kept else (int(st["spp"]), 0)
-        if self.measured and spp <= self.measured[0]["spp"]:  # the pilot's pair, at more samples, missed above
+        if self.measured and spp <= self.measured[0]["spp"] and np.isfinite(self.measured[0]["ratio"]):
+            # the pilot's pair, at more samples, missed above
             spp = static_retry_spp([(m["spp"], m["ratio"]) for m in self.measured], target, int(st["max_spp"]),
                                    rnd.effective_spp) or spp
         while True:

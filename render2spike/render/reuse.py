@@ -229,9 +229,13 @@ def static_retry_spp(measured: list[tuple[int, float]], target_ratio: float, cap
     solved for the target. Above every count measured: the variance taken to fall like 1/n (the slowest the
     sampler converges, so conservative). Below every one: the ratio taken to grow like 1/n as the count falls (the
     variance like 1/n^2, the fastest). The answer at a square count (:func:`square_count`; the nearest one, and
-    the nearest count the sampler takes below 4), within ``[1, cap]``, not one measured already."""
+    the nearest count the sampler takes below 4), within ``[1, cap]``, not one measured already; None too when no
+    ratio measured is a number (static pixels without light or dark current)."""
     from .noise import exact_below
     seen = {int(n) for n, _ in measured}
+    measured = [(n, r) for n, r in measured if math.isfinite(r)]
+    if not measured:
+        return None
     hi = [(n, r) for n, r in measured if r > target_ratio]  # counts that missed above
     lo = [(n, r) for n, r in measured if r <= target_ratio]
     if hi and lo and max(n for n, _ in hi) < min(n for n, _ in lo):

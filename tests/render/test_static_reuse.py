@@ -280,6 +280,24 @@ def test_a_static_frame_that_misses_the_band_is_rendered_again_and_resumes_as_ke
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
 
 
+def test_a_static_region_without_light_keeps_the_pilots_pair(tmp_path, write_scene):
+    """A mover with nothing behind it and a sensor without dark current: the static pixels are black, so their
+    ratio is not defined (nan) and no count can miss the band. The pilot's pair is the static frame (it costs
+    nothing), the render finishes, and the static pixels stay black."""
+    from render2spike.render.job import render_scene
+    scene = _scene(write_scene, objects=[MOVER], duration_s=0.003,
+                   render=dict(BASE["render"], keyframe_rate_hz=1000, adaptive={"enabled": False},
+                               noise={"max_spp": 16}))
+    res = render_scene(scene, tmp_path / "f", progress=False, log=lambda *a: None)
+    sr = res.manifest["static_reuse"]
+    (m,) = sr["static_measured"]
+    assert sr["applied"] and sr["static_source"] == "pilot" and m["source"] == "pilot" and np.isnan(m["ratio"])
+    from sensor.io.frames import read_frames
+    seq = read_frames(tmp_path / "f")
+    phi = np.stack([seq.read_phi(i) for i in range(len(seq))])
+    assert np.isfinite(phi).all() and (phi == 0).all(axis=0).mean() > 0.5
+
+
 def test_static_retry_counts():
     from render2spike.render.reuse import square_count, static_retry_spp
     e = lambda k: k  # noqa: E731  (a sampler that takes every count)
@@ -295,6 +313,7 @@ def test_static_retry_counts():
     assert static_retry_spp([(16, 0.4), (64, 0.1), (36, 0.2 * 1.2)], 0.2, 1024, e) == 49
     assert static_retry_spp([(30, 0.3), (36, 0.1)], 0.2, 1024, e) == 32  # no square between: the nearest count
     assert static_retry_spp([(30, 0.3), (31, 0.1)], 0.2, 1024, e) is None  # nothing between
+    assert static_retry_spp([(16, float("nan"))], 0.2, 1024, e) is None  # no ratio to go by
 
 
 def test_a_given_spp_is_the_static_frames_too(tmp_path, write_scene):
