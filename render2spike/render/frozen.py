@@ -84,6 +84,9 @@ MAX_SAMPLES_PER_LAUNCH = 1 << 26
 #: (:func:`block_obstacle`); fewer where they would hold more than :data:`MAX_SAMPLES_PER_LAUNCH` samples. Part of
 #: the frames' scene hash there (:func:`.launch.settings_of`): which keyframes share a launch decides their samples
 BLOCK_KEYFRAMES = 16
+#: how a block is seeded and which of its samples are whose frame; with :data:`BLOCK_KEYFRAMES`, part of the frames'
+#: scene hash where blocks apply: a change must bump it, so that no folder mixes frames of two block layouts
+BLOCK_VERSION = 2
 #: a launch of a list of pixels (:meth:`FrozenLaunch.launch_pixels`) pads the list (:func:`padded_pixels`) to a
 #: multiple of this many pixels at least, and of 1/PIXEL_STEPS of the list's power of two: the padded length is part
 #: of what is recorded, so lists of nearly equal length share one recording, and the padding (whose samples are
@@ -369,9 +372,9 @@ class FrozenLaunch:
 
     @property
     def n_recordings(self) -> int:
-        """Recordings the frozen function made so far (one per sample count at its first launch, at times one
-        or two more in the next few, then replays); 0 unfrozen."""
-        return int(getattr(self._fn, "n_recordings", 0))
+        """Recordings the three frozen functions (whole frame, pixel list, block) made so far (one per sample count
+        and length at its first launch, at times one or two more in the next few, then replays); 0 unfrozen."""
+        return sum(int(getattr(fn, "n_recordings", 0)) for fn in (self._fn, self._fn_px, self._fn_block))
 
     def sample_count(self, spp: int) -> int:
         """The samples per pixel the sampler takes for ``spp`` (a stratified one rounds up)."""
@@ -404,9 +407,15 @@ class FrozenLaunch:
             import gc  # that are garbage not yet collected (e.g. a light meter's, in a reference cycle) would
             gc.collect()  # break the recording
             self._seen_spp.add(spp)
+        seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
+        return spp, self._replay(self._fn, self.scene, seed_v, m, spp, self._tables, self._quantiles,
+                                 self._all_pixels)
+
+    def _replay(self, fn, *args):
+        """``fn(*args)``, one of the three recorded functions; Dr.Jit's failure to record or replay it raised as
+        :class:`sensor.errors.DependencyError`, saying what to do."""
         try:
-            seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
-            out = self._fn(self.scene, seed_v, m, spp, self._tables, self._quantiles, self._all_pixels)
+            return fn(*args)
         except RuntimeError as exc:
             if not self.frozen:
                 raise
@@ -418,7 +427,6 @@ class FrozenLaunch:
                 "1810): free other scenes rendered with the film launch first, or render with --launch film "
                 "(SceneRenderer(..., launch='film')). Dr.Jit's state in this process may be unusable after "
                 "this: start a new process.") from exc
-        return spp, out
 
     def channels(self, launched) -> dict[str, np.ndarray]:
         """``{channel: float64 (H, W)}``: the per-pixel means of a :meth:`launch` (waits for it)."""
@@ -458,7 +466,8 @@ class FrozenLaunch:
             gc.collect()
             self._seen_spp.add(key)
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
-        out = self._fn_px(self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx), padded)
+        out = self._replay(self._fn_px, self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx),
+                           padded)
         return spp, n_pix, out
 
     def block_size(self, spp: int, most: int = 0) -> int:
@@ -489,15 +498,16 @@ class FrozenLaunch:
             gc.collect()
             self._seen_spp.add(key)
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
-        return spp, k, self._fn_block(self.scene, seed_v, ms, spp, self._tables, self._quantiles, k)
+        return spp, k, self._replay(self._fn_block, self.scene, seed_v, ms, spp, self._tables, self._quantiles, k)
 
     def block_channels(self, launched) -> list[dict[str, np.ndarray]]:
         """``[{channel: float64 (H, W)}]``, one per frame of a :meth:`launch_block`, in the order of its poses
-        (waits for it)."""
+        (waits for it). Each frame is an array of its own (not a view into the block's): a frame let go frees its
+        memory."""
         spp, k, out = launched
         h, w = self.height, self.width
-        arrays = [np.asarray(x, dtype=np.float64).reshape(k, h, w) / spp for x in out]
-        return [{c: a[f] for c, a in zip(self.names, arrays)} for f in range(k)]
+        blocks = [np.asarray(x).reshape(k, h, w) for x in out]
+        return [{c: np.divide(a[f], spp, dtype=np.float64) for c, a in zip(self.names, blocks)} for f in range(k)]
 
     def pixel_length(self, n_pix: int, spp: int) -> int:
         """The padded length of a list of ``n_pix`` pixels at ``spp``: the shortest length already recorded at

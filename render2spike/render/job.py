@@ -12,8 +12,9 @@ Output (the frame contract of :mod:`sensor.io.frames`)
 ---------------------------------------------------
 (Or, into a :class:`.memory.MemorySink`, the same keyframes held in memory, nothing written.)
 ``OUT/frame_TTTTTTTT.exr`` (float32 ``Phi`` [e-/(s m^2)] and ``E`` [lux], header
-``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``variant``, ``launch``,
-``scene_hash``, ``target_lux``, ``made_by``) and ``OUT/frames.json``, written
+``time_s``, ``units``, ``spp``, ``render_noise_ratio``, ``render_noise_window_intervals``, ``variant``, ``launch``,
+``scene_hash``, ``target_lux``, ``seeds``, ``made_by``, ``scene``; ``keyframe_block`` [block index, place in it]
+for a base keyframe rendered in a block) and ``OUT/frames.json``, written
 last, when every frame is done. ``TTTTTTTT`` is the frame's tick on the finest
 time grid (``time_s = duration_s * tick / n_ticks``), zero-padded: file names
 sort in time order.
@@ -181,7 +182,7 @@ def _noise_budget(rnd, scene: Scene, folder: FramesFolder, log, reuse: "_Reuse")
         budget, pilot_var_px = pilot_budget(rnd, scene, W, K, rnd.rate_scale(), snap=rcfg["spp"] == "auto",
                                             dark_e=dark_current_mean_e(scene.profile), mask=reuse.budget_mask(),
                                             keep=pairs, level_factors=factors,
-                                            keep_raw=reuse.pilot_raw if reuse.on else None)
+                                            keep_raw=reuse.pilot_raw if reuse.on and rcfg["spp"] == "auto" else None)
     if reuse.on:
         budget["static"] = reuse.static_budget(pairs, rnd, scene)
     state = folder.state
@@ -230,10 +231,15 @@ class _Keyframes:
         self.block_k = 0
         if self.block_why_not is None:
             self.block_k = rnd.frame_launch.block_size(self.spp_levels[0])
-            if self.block_k < 2 or len(rnd.launch_counts(self.spp_levels[0])) != 1:
-                self.block_k = 0
+            counts = rnd.launch_counts(self.spp_levels[0])
+            if len(counts) != 1:
+                self.block_why_not = (f"a frame at {self.spp_levels[0]} spp takes {len(counts)} launches "
+                                      f"({' + '.join(str(c) for c in counts)} spp), a block's frames one each")
+            elif self.block_k < 2:
                 self.block_why_not = (f"two frames at {self.spp_levels[0]} spp would take more than one launch's "
                                       "samples")
+            if self.block_why_not is not None:
+                self.block_k = 0
         self._block = {}  # tick -> (raw channels, block seed, block index, place in it) of the block rendered last
         self.n_blocks = 0
 
@@ -298,10 +304,13 @@ class _Keyframes:
             b = tick // (grid.step * self.block_k)
             ticks = [t for t in range(b * self.block_k * grid.step, (b + 1) * self.block_k * grid.step, grid.step)
                      if t <= grid.n_ticks]
-            # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
-            bseed = int(np.random.SeedSequence([int(seed), 0xB10C, int(b)]).generate_state(1, np.uint32)[0])
+            # a child of the render seed by its spawn key: numpy pads the seed's words apart from the key's, so no
+            # keyframe's SeedSequence([seed, t_ns]) (.sampling.frame_seeds) can equal it, whatever t_ns is
+            bseed = int(np.random.SeedSequence(int(seed), spawn_key=(0xB10C, int(b))).generate_state(1, np.uint32)[0])
             raws = rnd.render_block([self.source.time(t) for t in ticks], bseed, spp)
-            self._block = {t: (raw, bseed, b, i) for i, (t, raw) in enumerate(zip(ticks, raws))}
+            # the frames this render still needs (a resumed one has some already): the others are let go now
+            self._block = {t: (raw, bseed, b, i) for i, (t, raw) in enumerate(zip(ticks, raws))
+                           if t == tick or self.folder.saved(t) is None}
             self.n_blocks += 1
         (raw_p, raw_e), bseed, b, place = self._block.pop(tick)
         phi, lux = apply_factors(raw_p, raw_e, rnd._factors)
@@ -387,7 +396,7 @@ class _Reuse:
         self.static = None
         self.checks = []
         self.dyn_fractions = []
-        self.pilot_raw = {}  # the noise pilot's pairs at t = 0 as rendered (pilot_budget's keep_raw)
+        self.pilot_raw = {}  # the noise pilot's pair at its highest count, as rendered (pilot_budget's keep_raw)
 
     def budget_mask(self):
         """The pixels the dynamic region's budget is measured on: those dynamic at t = 0, or every pixel when
@@ -466,8 +475,8 @@ class _Reuse:
                                    rnd.effective_spp) or spp
         while True:
             n = len(rnd.launch_counts(spp))
-            # three words: no keyframe's SeedSequence([seed, t_ns]) can equal it (.sampling.frame_seeds)
-            seeds = np.random.SeedSequence([int(scene.render["seed"]), 0x57A71C, 1 + attempt]).generate_state(
+            # a child of the render seed by its spawn key, as a block's (_Keyframes._block_frame)
+            seeds = np.random.SeedSequence(int(scene.render["seed"]), spawn_key=(0x57A71C, attempt)).generate_state(
                 2 * n, np.uint32)
             made[attempt] = StaticFrame(rnd, spp, seeds, ~self.dynamic_t0)
             ratio = static_ratio(made[attempt], rnd, W, dark)

@@ -74,7 +74,7 @@ STATIC_ATTEMPTS = 4
 STATIC_CHECK_SIGMAS = 6.0
 #: part of the frames' scene hash when reuse is on (:func:`.launch.settings_of`): a change to the coverage
 #: test, the static frame or the budget split must bump it
-REUSE_VERSION = 2
+REUSE_VERSION = 3
 
 
 def reuse_obstacle(scene, launch: str) -> str | None:

@@ -139,8 +139,10 @@ def test_frozen_replays_are_the_unfrozen_function_bitwise(write_scene):
     fl = r._frozen
     ref = FrozenLaunch(r.mi, r._dr, r.mi_scene, fl.height, fl.width, 1.0, 1.0, 2.0,
                        {"Phi": (np.array([400.0, 700.0]), np.ones(2))}, "multijitter", frozen=False)
-    ref.__dict__.update({k: v for k, v in fl.__dict__.items() if k not in ("_fn", "frozen")})  # same camera, tables
-    assert ref.frozen is False and ref._fn == ref._launch
+    ref.__dict__.update({k: v for k, v in fl.__dict__.items()  # same camera, tables
+                         if k not in ("_fn", "_fn_px", "_fn_block", "frozen")})
+    assert ref.frozen is False and ref._fn == ref._launch and ref._fn_px == ref._launch_px
+    assert ref._fn_block == ref._launch_block
     warm = tuple((0.001 * k, 100 + k, spp) for spp in (16, 4) for k in range(4))
     calls = ((0.004, 8, 16), (0.013, 123456789, 4), (0.004, 8, 16), (0.02, 9, 4), (0.007, 11, 16))
     frozen = []
@@ -165,6 +167,26 @@ def test_frozen_replays_are_the_unfrozen_function_bitwise(write_scene):
             assert np.all(np.isfinite(a[c])) and a[c].mean() > 0
     np.testing.assert_array_equal(frozen[0]["Phi"], frozen[2]["Phi"])  # the same frame again: the same bits
     assert not np.array_equal(frozen[0]["Phi"], frozen[4]["Phi"])
+    # the other two recorded functions, a list of pixels and a block of camera poses, twice (other seeds, pixels and
+    # poses in each place): each the unfrozen function bit for bit
+    poses = []
+    for t_s in (0.0, 0.004, 0.009):
+        r.set_time(t_s)
+        poses.append(np.array(r._cam_m))
+    rng = np.random.default_rng(3)
+    n_rec = fl.n_recordings
+    for seed in (21, 22):
+        pix = np.sort(rng.choice(fl.height * fl.width, 300, replace=False))
+        a, b = (x.pixel_values(x.launch_pixels(seed, 16, r._cam_m, pix)) for x in (fl, ref))
+        order = poses[seed - 21:] + poses[:seed - 21]  # the same number of frames, other poses in each place
+        fa, fb = (x.block_channels(x.launch_block(seed, 4, order)) for x in (fl, ref))
+        assert len(fa) == len(fb) == 3
+        for c in ("Phi", "E"):
+            np.testing.assert_array_equal(a[c], b[c])
+            for f, g in zip(fa, fb):
+                np.testing.assert_array_equal(f[c], g[c])
+                assert np.all(np.isfinite(f[c])) and f[c].mean() > 0
+    assert fl.n_recordings > n_rec  # the two were recorded (and at times again at the second call, as above)
 
 
 def test_a_moving_mesh_is_an_instance_and_every_replay_traces_its_pose():

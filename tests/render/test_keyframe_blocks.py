@@ -28,11 +28,12 @@ def _scene(write_scene, **changes):
 
 
 def test_blocks_apply_where_only_the_camera_moves(write_scene):
-    from render2spike.render.frozen import BLOCK_KEYFRAMES, block_obstacle
+    from render2spike.render.frozen import BLOCK_KEYFRAMES, BLOCK_VERSION, block_obstacle
     from render2spike.render.launch import settings_of
     pan = _scene(write_scene)
     assert block_obstacle(pan, "frozen") is None
-    assert settings_of(pan, "llvm_ad_spectral", "frozen")["keyframe_blocks"] == BLOCK_KEYFRAMES
+    assert settings_of(pan, "llvm_ad_spectral", "frozen")["keyframe_blocks"] == {"keyframes": BLOCK_KEYFRAMES,
+                                                                                "version": BLOCK_VERSION}
     assert "film launch" in block_obstacle(pan, "film")
     assert "keyframe_blocks" not in settings_of(pan, "llvm_ad_spectral", "film")
     still = _scene(write_scene, camera=BASE["camera"])
@@ -81,6 +82,27 @@ def test_a_block_of_frames_estimates_what_frames_of_their_own_do(write_scene):
         assert abs(z) < 4.5, (f, z)
 
 
+def test_the_frames_of_one_block_have_independent_errors(write_scene):
+    """One camera pose three times in a block: the three frames estimate one image, and their errors must be
+    independent (the noise budget counts on the errors of K keyframes averaging). Per pixel over the seeds, the mean
+    square of two frames' difference estimates var_a + var_b - 2 cov, and the seeds' spread estimates var_a + var_b:
+    their ratio over the pixels, R, is 1 for independent errors and 0 for frames that share their samples. Its
+    standard error comes from the pixels (a ratio estimator, pixels independent: their samples are other lanes)."""
+    from render2spike.render.renderer import SceneRenderer
+    gc.collect()
+    r = SceneRenderer(_scene(write_scene), launch="frozen")
+    spp, n_seeds = 16, 8
+    frames = np.stack([np.stack([p for p, _ in r.render_block([0.002] * 3, 3000 + s, spp)])
+                       for s in range(n_seeds)])  # (seed, frame, H, W)
+    for f, g in ((0, 1), (1, 2), (0, 2)):
+        num = ((frames[:, f] - frames[:, g]) ** 2).mean(axis=0).ravel()  # the mean difference is 0: one image
+        den = (frames[:, f].var(axis=0, ddof=1) + frames[:, g].var(axis=0, ddof=1)).ravel()
+        ratio = num.sum() / den.sum()
+        se = np.sqrt(((num - ratio * den) ** 2).sum()) / den.sum()
+        assert se < 0.1, se  # enough pixels to tell 1 from a correlation of 0.5 (R = 0.5) at 5 standard errors
+        assert abs(ratio - 1.0) < 5 * se, (f, g, ratio, se)
+
+
 def test_a_camera_pan_renders_its_base_keyframes_in_blocks_and_resumes_the_same(tmp_path, write_scene, monkeypatch):
     """A render of a panning camera takes its 21 base keyframes in two blocks (16 and 5); killed during the
     second block and resumed, it makes the same frames, bit for bit, as an uninterrupted render."""
@@ -100,6 +122,19 @@ def test_a_camera_pan_renders_its_base_keyframes_in_blocks_and_resumes_the_same(
     # [block, place in it] in each frame's header (a JSON string there)
     assert [json.loads(seq.read(i).header["keyframe_block"]) for i in (0, 15, 16, 20)] == [[0, 0], [0, 15], [1, 0],
                                                                                            [1, 4]]
+    # each frame is its own time's: nearer a 64-spp render at its time than one at any other of these times (the
+    # pan moves the checker's edge 4 px in 5 ms; the nearest wrong time is some 600x farther than the right one)
+    from render2spike.render.photometry import apply_factors
+    from render2spike.render.renderer import SceneRenderer
+    r = SceneRenderer(scene, launch="frozen")
+    ticks = (0, 5, 10, 15, 20)
+    refs = [apply_factors(*r.render_raw(whole.manifest["frames"][t]["time_s"], 77 + t, 64), r._factors)[0]
+            for t in ticks]
+    for t in ticks:
+        dist = [np.mean((seq.read_phi(t) - ref) ** 2) for ref in refs]
+        assert ticks[int(np.argmin(dist))] == t, (t, dist)
+    del r
+    gc.collect()
     orig, calls = rmod.SceneRenderer.render_block, {"n": 0}
 
     def killed(self, *args, **kw):
@@ -114,4 +149,35 @@ def test_a_camera_pan_renders_its_base_keyframes_in_blocks_and_resumes_the_same(
     monkeypatch.setattr(rmod.SceneRenderer, "render_block", orig)
     res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
     assert res.n_rendered == 5 and res.manifest["keyframe_blocks"]["n_blocks_this_run"] == 1
+    _assert_same_frames(tmp_path / "a", tmp_path / "b")
+
+
+def test_a_render_killed_inside_a_block_takes_the_frames_it_lacks_from_that_block_again(tmp_path, write_scene,
+                                                                                      monkeypatch):
+    """Blocks of 4 (BLOCK_KEYFRAMES patched), 13 base keyframes, killed after the sixth frame: the second block
+    is half written. The resumed render makes that block again, from its seed and its poses, and takes only the
+    frames it lacks: every frame bit for bit an uninterrupted render's."""
+    from render2spike.render import frozen
+    from render2spike.render import job as job_mod
+    from render2spike.render.job import render_scene
+    from tests.render.test_reproducible import _assert_same_frames
+    monkeypatch.setattr(frozen, "BLOCK_KEYFRAMES", 4)
+    scene = _scene(write_scene, duration_s=0.012,
+                   render=dict(BASE["render"], spp=8, keyframe_rate_hz=1000, adaptive={"enabled": False}))
+    whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
+    assert whole.n_frames == 13 and whole.manifest["keyframe_blocks"]["n_blocks_this_run"] == 4
+    orig, calls = job_mod._Keyframes._block_frame, {"n": 0}
+
+    def killed(self, *args, **kw):
+        calls["n"] += 1
+        if calls["n"] > 6:
+            raise KeyboardInterrupt
+        return orig(self, *args, **kw)
+
+    monkeypatch.setattr(job_mod._Keyframes, "_block_frame", killed)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    monkeypatch.setattr(job_mod._Keyframes, "_block_frame", orig)
+    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    assert res.n_rendered == 7 and res.manifest["keyframe_blocks"]["n_blocks_this_run"] == 3  # ticks 6-12: blocks 1-3
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
