@@ -27,6 +27,25 @@ def _scene(write_scene, **changes):
     return load_scene(write_scene({**PAN, **changes}))
 
 
+def _killed_and_resumed(scene, out, monkeypatch, owner, name: str, calls: int):
+    """Render ``scene`` into ``out``, killed (KeyboardInterrupt) at the call of ``owner.name`` after ``calls`` of
+    them, then resumed; -> the resumed render's result."""
+    from render2spike.render.job import render_scene
+    orig, n = getattr(owner, name), {"calls": 0}
+
+    def killed(self, *args, **kw):
+        n["calls"] += 1
+        if n["calls"] > calls:
+            raise KeyboardInterrupt
+        return orig(self, *args, **kw)
+
+    monkeypatch.setattr(owner, name, killed)
+    with pytest.raises(KeyboardInterrupt):
+        render_scene(scene, out, progress=False, log=lambda *a: None)
+    monkeypatch.setattr(owner, name, orig)
+    return render_scene(scene, out, progress=False, log=lambda *a: None)
+
+
 def test_blocks_apply_where_only_the_camera_moves(write_scene):
     from render2spike.render.frozen import BLOCK_KEYFRAMES, BLOCK_VERSION, block_obstacle
     from render2spike.render.launch import settings_of
@@ -135,19 +154,8 @@ def test_a_camera_pan_renders_its_base_keyframes_in_blocks_and_resumes_the_same(
         assert ticks[int(np.argmin(dist))] == t, (t, dist)
     del r
     gc.collect()
-    orig, calls = rmod.SceneRenderer.render_block, {"n": 0}
-
-    def killed(self, *args, **kw):
-        calls["n"] += 1
-        if calls["n"] > 1:
-            raise KeyboardInterrupt  # dies at the second block: the first block's 16 frames are written
-        return orig(self, *args, **kw)
-
-    monkeypatch.setattr(rmod.SceneRenderer, "render_block", killed)
-    with pytest.raises(KeyboardInterrupt):
-        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
-    monkeypatch.setattr(rmod.SceneRenderer, "render_block", orig)
-    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    # dies at the second block: the first block's 16 frames are written
+    res = _killed_and_resumed(scene, tmp_path / "b", monkeypatch, rmod.SceneRenderer, "render_block", 1)
     assert res.n_rendered == 5 and res.manifest["keyframe_blocks"]["n_blocks_this_run"] == 1
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
 
@@ -166,18 +174,6 @@ def test_a_render_killed_inside_a_block_takes_the_frames_it_lacks_from_that_bloc
                    render=dict(BASE["render"], spp=8, keyframe_rate_hz=1000, adaptive={"enabled": False}))
     whole = render_scene(scene, tmp_path / "a", progress=False, log=lambda *a: None)
     assert whole.n_frames == 13 and whole.manifest["keyframe_blocks"]["n_blocks_this_run"] == 4
-    orig, calls = job_mod._Keyframes._block_frame, {"n": 0}
-
-    def killed(self, *args, **kw):
-        calls["n"] += 1
-        if calls["n"] > 6:
-            raise KeyboardInterrupt
-        return orig(self, *args, **kw)
-
-    monkeypatch.setattr(job_mod._Keyframes, "_block_frame", killed)
-    with pytest.raises(KeyboardInterrupt):
-        render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
-    monkeypatch.setattr(job_mod._Keyframes, "_block_frame", orig)
-    res = render_scene(scene, tmp_path / "b", progress=False, log=lambda *a: None)
+    res = _killed_and_resumed(scene, tmp_path / "b", monkeypatch, job_mod._Keyframes, "_block_frame", 6)
     assert res.n_rendered == 7 and res.manifest["keyframe_blocks"]["n_blocks_this_run"] == 3  # ticks 6-12: blocks 1-3
     _assert_same_frames(tmp_path / "a", tmp_path / "b")
