@@ -201,3 +201,25 @@ def mitsuba(variant: str | None = None):
         mi.set_variant(chosen)
         mi.set_log_level(mi.LogLevel.Error)  # no per-render chatter; errors still raise
     return mi
+
+
+#: Mitsuba scenes loaded by this process through :func:`load_scene` (the frozen launch reads it:
+#: :meth:`.frozen.FrozenLaunch._before_recording`)
+_SCENES_LOADED = [0]
+
+
+def load_scene(mi, source, *, from_file: bool = False):
+    """A Mitsuba scene from a dict (``mi.load_dict``) or, ``from_file``, an XML file, loaded as every scene of this
+    package is: in one thread, so that its objects get the same registry ids in every process (the ids are
+    constants of the render kernels: with Mitsuba's parallel loading they came in thread order, and Dr.Jit's
+    kernel cache on disk then missed in about half the processes), and not optimised. Each load is counted
+    (:func:`scenes_loaded`)."""
+    _SCENES_LOADED[0] += 1  # before the load: one that fails half way may leave objects behind too
+    if from_file:
+        return mi.load_file(str(source), parallel=False, optimize=False)
+    return mi.load_dict(source, parallel=False, optimize=False)
+
+
+def scenes_loaded() -> int:
+    """How many scenes :func:`load_scene` has loaded in this process so far."""
+    return _SCENES_LOADED[0]

@@ -319,7 +319,8 @@ def add_xml(mi, scene: Scene, d: dict) -> None:
     """
     path = scene.file(scene.data["xml"], "xml")
     try:
-        xs = mi.load_file(str(path), parallel=False, optimize=False)
+        from .backend import load_scene
+        xs = load_scene(mi, path, from_file=True)
     except Exception as exc:
         raise InputError(f"Mitsuba cannot load this XML scene: {exc}", path=path) from exc
     for j, sh in enumerate(xs.shapes()):

@@ -364,6 +364,7 @@ class FrozenLaunch:
         self._fn_px = dr.freeze(self._launch_px) if self.frozen else self._launch_px
         self._fn_block = dr.freeze(self._launch_block) if self.frozen else self._launch_block
         self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
+        self._collected_at = -1  # backend.scenes_loaded() at this launch's last garbage collection
         self._px_lengths = {}  # spp -> the padded pixel-list lengths recorded at it
 
     def max_samples(self) -> int:
@@ -403,13 +404,25 @@ class FrozenLaunch:
         # made from a NumPy array, the buffer was at times another input layout to drjit.freeze, which then recorded
         # the launch again (in 5 of 40 processes of a 13-launch run, against none in 120 from a list)
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
-        if self.frozen and spp not in self._seen_spp:  # a new count is recorded: scenes with the spectral film
-            import gc  # that are garbage not yet collected (e.g. a light meter's, in a reference cycle) would
-            gc.collect()  # break the recording
-            self._seen_spp.add(spp)
+        self._before_recording(spp)
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         return spp, self._replay(self._fn, self.scene, seed_v, m, spp, self._tables, self._quantiles,
                                  self._all_pixels)
+
+    def _before_recording(self, key) -> None:
+        """Before a launch with a new ``key`` (its sample count, with a pixel list's length or a block's size), which
+        Dr.Jit records: scenes with the spectral film that are garbage not yet collected (e.g. a light meter's, in a
+        reference cycle) would break the recording, so they are collected first, unless no scene was loaded
+        (:func:`.backend.scenes_loaded`) since this launch last collected (a collection is 30-90 ms in a process
+        that holds PyTorch; a render records one launch per count and length)."""
+        if not self.frozen or key in self._seen_spp:
+            return
+        self._seen_spp.add(key)
+        from .backend import scenes_loaded
+        if self._collected_at != scenes_loaded():
+            import gc
+            gc.collect()
+            self._collected_at = scenes_loaded()
 
     def _replay(self, fn, *args):
         """``fn(*args)``, one of the three recorded functions; Dr.Jit's failure to record or replay it raised as
@@ -461,10 +474,7 @@ class FrozenLaunch:
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
         key = ("px", spp, padded)
         self._px_lengths.setdefault(spp, set()).add(padded)
-        if self.frozen and key not in self._seen_spp:
-            import gc
-            gc.collect()
-            self._seen_spp.add(key)
+        self._before_recording(key)
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         out = self._replay(self._fn_px, self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx),
                            padded)
@@ -493,10 +503,7 @@ class FrozenLaunch:
             raise ValueError(f"a block of {k} frames at {spp} spp: 1 to {self.block_size(spp)} frames (block_size)")
         ms = mi.Float([float(x) for p in poses for x in np.asarray(p, np.float32).reshape(16)])
         key = ("block", spp, k)
-        if self.frozen and key not in self._seen_spp:
-            import gc
-            gc.collect()
-            self._seen_spp.add(key)
+        self._before_recording(key)
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         return spp, k, self._replay(self._fn_block, self.scene, seed_v, ms, spp, self._tables, self._quantiles, k)
 

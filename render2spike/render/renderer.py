@@ -147,7 +147,7 @@ class SceneRenderer:
         # {key: (M(0) S)^-1} of the meshes the launch moves as instances; bind: the launch for the loaded scene
         instanced, bind = launch_type.prepare(mi, scene, d, self.motions)
         try:
-            self.mi_scene = mi.load_dict(d, parallel=False, optimize=False)
+            self.mi_scene = backend.load_scene(mi, d)
         except Exception as exc:
             raise InputError(f"Mitsuba could not build the scene: {exc}", path=scene.path) from exc
         self.params = mi.traverse(self.mi_scene)
@@ -526,7 +526,7 @@ class SceneRenderer:
         mi = self.mi
         spp = int(self.scene.render["meter_spp"])
         d, _ = build_dict(mi, self.scene, for_meter={"point": p, "normal": n, "spp": spp})
-        meter_scene = mi.load_dict(d, parallel=False, optimize=False)
+        meter_scene = backend.load_scene(mi, d)
         meter_sensor = [s for s in meter_scene.sensors() if "irradiancemeter" in type(s).__name__.lower()
                         or "IrradianceMeter" in str(s)]
         meter_sensor = meter_sensor[0] if meter_sensor else meter_scene.sensors()[-1]
