@@ -68,7 +68,7 @@ python3 -c "import mitsuba, drjit, render2spike; print('mitsuba', mitsuba.__vers
 stamp "auto variant: $(python3 -c 'from render2spike.render.backend import mitsuba; print(mitsuba().variant())' 2>&1 | tail -1)"
 
 stamp "render tests on cuda_ad_spectral (timeout ${TEST_T} s)"
-RENDER2SPIKE_VARIANT=cuda_ad_spectral timeout "$TEST_T" python3 -m pytest ${TESTS:-tests/render} -q -p no:cacheprovider \
+RENDER2SPIKE_TEST_WORKERS=0 RENDER2SPIKE_VARIANT=cuda_ad_spectral timeout "$TEST_T" python3 -m pytest ${TESTS:-tests/render} -q -p no:cacheprovider \
   -rfE --durations=10 > "$OUT/pytest_render_cuda.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "render tests exit $rc ($(tail -1 "$OUT/pytest_render_cuda.txt"))"
@@ -143,7 +143,7 @@ python3 -c "from sensor.models.torch_models import cuda_works; import torch; pri
   'cuda', torch.version.cuda); assert cuda_works(), 'torch finds no working CUDA device'" > "$OUT/spike/torch_env.txt" 2>&1 \
   || { stamp "torch sees no working CUDA device (see spike/torch_env.txt): the CUDA tests would only skip"; fail=1; }
 stamp "spike stage: torch implementation's CUDA tests (timeout $(( SPIKE_T / 3 )) s)"
-RENDER2SPIKE_SPIKE_DEVICE=cuda timeout $(( SPIKE_T / 3 )) python3 -m pytest tests/sensor/test_torch_models.py -m cuda -q \
+RENDER2SPIKE_TEST_WORKERS=0 RENDER2SPIKE_SPIKE_DEVICE=cuda timeout $(( SPIKE_T / 3 )) python3 -m pytest tests/sensor/test_torch_models.py -m cuda -q \
   -p no:cacheprovider -rfEs --durations=10 > "$OUT/spike/pytest_torch_cuda.txt" 2>&1
 rc=$?; [ $rc -eq 0 ] || fail=1
 stamp "spike-stage CUDA tests exit $rc ($(tail -1 "$OUT/spike/pytest_torch_cuda.txt"))"

@@ -40,13 +40,14 @@ def pytest_addoption(parser):
 @pytest.hookimpl(tryfirst=True)
 def pytest_cmdline_main(config):
     """Run the suite in :data:`TEST_WORKERS` processes, a file to a process (``--dist loadfile``: a file's module
-    fixtures are made once), unless ``-n`` is given, pytest-xdist is missing, or a debugger or collection is asked
-    for. Called before pytest-xdist's own hook, which then starts the workers."""
+    fixtures are made once), unless ``-n`` is given, pytest-xdist is missing, this is a worker (whose ``-n`` xdist
+    clears: it would start workers of its own), or a debugger (``--pdb``, ``--trace``), output (``-s``) or
+    collection alone is asked for. Called before pytest-xdist's own hook, which then starts the workers."""
     if not config.pluginmanager.hasplugin("xdist") or hasattr(config, "workerinput"):
         return
     opt = config.option
-    if opt.numprocesses is not None or getattr(opt, "usepdb", False) or getattr(opt, "collectonly", False) \
-            or getattr(opt, "tx", None):
+    if opt.numprocesses is not None or getattr(opt, "usepdb", False) or getattr(opt, "trace", False) \
+            or getattr(opt, "capture", None) == "no" or getattr(opt, "collectonly", False) or getattr(opt, "tx", None):
         return
     want = os.environ.get("RENDER2SPIKE_TEST_WORKERS", "").strip()
     try:

@@ -363,7 +363,6 @@ class FrozenLaunch:
         self._fn = dr.freeze(self._launch) if self.frozen else self._launch
         self._fn_px = dr.freeze(self._launch_px) if self.frozen else self._launch_px
         self._fn_block = dr.freeze(self._launch_block) if self.frozen else self._launch_block
-        self._seen_spp = set()  # sample counts launched so far (a new one is recorded)
         self._collected_at = -1  # backend.scenes_loaded() at this launch's last garbage collection
         self._px_lengths = {}  # spp -> the padded pixel-list lengths recorded at it
 
@@ -404,20 +403,19 @@ class FrozenLaunch:
         # made from a NumPy array, the buffer was at times another input layout to drjit.freeze, which then recorded
         # the launch again (in 5 of 40 processes of a 13-launch run, against none in 120 from a list)
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
-        self._before_recording(spp)
+        self._before_launch()
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         return spp, self._replay(self._fn, self.scene, seed_v, m, spp, self._tables, self._quantiles,
                                  self._all_pixels)
 
-    def _before_recording(self, key) -> None:
-        """Before a launch with a new ``key`` (its sample count, with a pixel list's length or a block's size), which
-        Dr.Jit records: scenes with the spectral film that are garbage not yet collected (e.g. a light meter's, in a
-        reference cycle) would break the recording, so they are collected first, unless no scene was loaded
-        (:func:`.backend.scenes_loaded`) since this launch last collected (a collection is 30-90 ms in a process
-        that holds PyTorch; a render records one launch per count and length)."""
-        if not self.frozen or key in self._seen_spp:
+    def _before_launch(self) -> None:
+        """Before a launch, which Dr.Jit may record (at a new sample count, pixel-list length or block size, and at
+        times again at one seen before): scenes with the spectral film that are garbage not yet collected (e.g. a
+        light meter's, in a reference cycle) would break a recording, so they are collected first, unless no scene
+        was loaded (:func:`.backend.scenes_loaded`) since this launch last collected. A collection is 30-90 ms in a
+        process that holds PyTorch; a render launches hundreds of times and loads its scenes before the first."""
+        if not self.frozen:
             return
-        self._seen_spp.add(key)
         from .backend import scenes_loaded
         if self._collected_at != scenes_loaded():
             import gc
@@ -472,9 +470,8 @@ class FrozenLaunch:
         idx[:n_pix] = pixels
         idx[n_pix:] = pixels[-1]
         m = mi.Float([float(x) for x in np.asarray(cam_to_world, np.float32).reshape(16)])
-        key = ("px", spp, padded)
         self._px_lengths.setdefault(spp, set()).add(padded)
-        self._before_recording(key)
+        self._before_launch()
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         out = self._replay(self._fn_px, self.scene, seed_v, m, spp, self._tables, self._quantiles, mi.UInt32(idx),
                            padded)
@@ -502,8 +499,7 @@ class FrozenLaunch:
         if k < 1 or k * self.height * self.width * spp > MAX_SAMPLES_PER_LAUNCH:
             raise ValueError(f"a block of {k} frames at {spp} spp: 1 to {self.block_size(spp)} frames (block_size)")
         ms = mi.Float([float(x) for p in poses for x in np.asarray(p, np.float32).reshape(16)])
-        key = ("block", spp, k)
-        self._before_recording(key)
+        self._before_launch()
         seed_v = self.dr.opaque(mi.UInt32, int(seed) & 0xFFFFFFFF)
         return spp, k, self._replay(self._fn_block, self.scene, seed_v, ms, spp, self._tables, self._quantiles, k)
 

@@ -469,8 +469,7 @@ class _Reuse:
                            folder, var_floor)
                 return
         spp, attempt = (int(kept["spp"]), int(kept["attempt"])) if kept else (int(st["spp"]), 0)
-        if self.measured and spp <= self.measured[0]["spp"] and np.isfinite(self.measured[0]["ratio"]):
-            # the pilot's pair, at more samples, missed above
+        if self.measured and spp <= self.measured[0]["spp"]:  # the pilot's pair, at more samples, missed above
             spp = static_retry_spp([(m["spp"], m["ratio"]) for m in self.measured], target, int(st["max_spp"]),
                                    rnd.effective_spp) or spp
         while True:

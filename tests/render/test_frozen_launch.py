@@ -367,10 +367,10 @@ def test_a_film_scene_left_in_a_reference_cycle_is_collected_before_recording(wr
     assert np.all(np.isfinite(p)) and p.mean() > 0
 
 
-def test_a_new_recording_collects_garbage_only_after_a_scene_was_loaded(write_scene, monkeypatch):
-    """Collecting is 30-90 ms where PyTorch is loaded, once per count and length a render records: it is done before
-    the first recording, and again only when a scene was loaded since (a film scene, garbage in a cycle, would break
-    the recording: the test above)."""
+def test_a_launch_collects_garbage_only_after_a_scene_was_loaded(write_scene, monkeypatch):
+    """Collecting is 30-90 ms where PyTorch is loaded, and Dr.Jit may record any launch (each new count and length,
+    and at times one seen before): it is done before the first launch, and again only when a scene was loaded since
+    (a film scene, garbage in a cycle, would break a recording: the test above)."""
     import gc
     from render2spike.render import backend
     from render2spike.render.renderer import SceneRenderer
@@ -381,16 +381,17 @@ def test_a_new_recording_collects_garbage_only_after_a_scene_was_loaded(write_sc
     orig = gc.collect
     monkeypatch.setattr(gc, "collect", lambda *a: collected.append(1) or orig(*a))
     fl.channels(fl.launch(1, 4, r._cam_m))
-    assert len(collected) == 1  # the first recording
+    assert len(collected) == 1  # the first launch
     fl.channels(fl.launch(2, 16, r._cam_m))
     fl.pixel_values(fl.launch_pixels(3, 9, r._cam_m, np.arange(0, 200, 2)))
     fl.channels(fl.launch(4, 4, r._cam_m))
     assert len(collected) == 1  # new counts and a list, but no scene loaded since
     backend.load_scene(r.mi, {"type": "scene"})
     fl.channels(fl.launch(5, 4, r._cam_m))
-    assert len(collected) == 1  # a replay records nothing
+    assert len(collected) == 2  # a count seen before, but a scene was loaded since: Dr.Jit may record it again
     fl.channels(fl.launch(6, 9, r._cam_m))
-    assert len(collected) == 2  # a new count after a scene was loaded
+    fl.block_channels(fl.launch_block(7, 4, [r._cam_m, r._cam_m]))
+    assert len(collected) == 2  # nothing loaded since
 
 
 def test_too_many_samples_for_one_launch_are_refused(write_scene):
