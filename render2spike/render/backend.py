@@ -204,7 +204,7 @@ def mitsuba(variant: str | None = None):
 
 
 #: Mitsuba scenes loaded by this process through :func:`load_scene` (the frozen launch reads it:
-#: :meth:`.frozen.FrozenLaunch._before_recording`)
+#: :meth:`.frozen.FrozenLaunch._before_launch`)
 _SCENES_LOADED = [0]
 
 

@@ -168,8 +168,8 @@ def settings_of(scene, variant: str, launch: str = "film") -> dict:
     :func:`.noise.snap_to_measured`, and refined keyframes at their own spp, :func:`.noise.level_k_factors`). The frozen launch adds its name and estimator version: its frames are
     other Monte Carlo estimates than the film's, and no folder mixes frames of two estimators; and
     ``static_reuse`` (:data:`.reuse.REUSE_VERSION`) where it reuses a static frame (:func:`.reuse.reuse_obstacle`), and
-    ``keyframe_blocks`` (:data:`.frozen.BLOCK_KEYFRAMES`, :data:`.frozen.BLOCK_VERSION`) where base keyframes share launches
-    (:func:`.frozen.block_obstacle`). The film launch
+    ``keyframe_blocks`` (:data:`.frozen.BLOCK_KEYFRAMES`, :data:`.frozen.BLOCK_VERSION`) where base keyframes share
+    launches (:func:`.frozen.block_obstacle`). The film launch
     adds ``mesh_normals`` (:data:`FILM_MESH_NORMALS`) for a scene with a moving mesh that carries its own
     normals (a cube, a mesh file with normals: :func:`.builder.carries_normals`), whose frames depend on how
     the vertex rewrites move those normals; nothing otherwise.

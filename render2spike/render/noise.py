@@ -394,9 +394,9 @@ def pilot_budget(rnd, scene, window_intervals: int, k_frames: float, rate_scale:
     budget is then only a record, and the snapping's pairs would be spent for nothing). ``dark_e``: the
     profile's mean dark current [e-/interval], added to the light in the shot noise (``r + d``). ``mask``
     (bool (H, W)): the means are taken over these pixels only (the dynamic region of :mod:`.reuse`); ``keep``:
-    a dict that receives the pilot pairs, ``{spp: (Phi a, Phi b)}``; ``keep_raw``: one that receives the pair at the highest count as rendered,
-    ``{spp: (seeds, (Phi_raw a, E_raw a), (Phi_raw b, E_raw b))}`` (the static frame of :mod:`.reuse` may be it). ``level_factors``
-    (:func:`level_k_factors`): the budget's ``spp_levels`` holds the spp of each refinement level, the base
+    a dict that receives the pilot pairs, ``{spp: (Phi a, Phi b)}``; ``keep_raw``: one that receives the pair at the
+    highest count as rendered, ``{spp: (seeds, (Phi_raw a, E_raw a), (Phi_raw b, E_raw b))}`` (the static frame of
+    :mod:`.reuse` may be it). ``level_factors`` (:func:`level_k_factors`): the budget's ``spp_levels`` holds the spp of each refinement level, the base
     one (``spp``) first; a refined level's is solved on the measured levels with ``K`` times its factor (not
     snapped: no pairs are spent on it), and ``level_var`` the variance of each level's keyframe over the
     base one's.
