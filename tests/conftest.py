@@ -10,7 +10,8 @@
 * ``rendered_run``: one tiny ``render2spike run`` made once per session (per worker
   process), for the tests that need some rendered frames (skipped where Mitsuba is missing).
 * The suite runs in two worker processes, a test file to a process, where
-  pytest-xdist is installed (:func:`pytest_cmdline_main`); ``-n 0`` runs it here.
+  pytest-xdist is installed (:func:`pytest_cmdline_main`); ``-n 0`` or
+  ``RENDER2SPIKE_TEST_WORKERS=0`` runs it here.
 * Every stochastic test uses a fixed seed; tolerances come from the statistics
   (binomial / Poisson standard errors at a stated number of sigmas).
 """
